@@ -1,0 +1,216 @@
+"""Export tool: checkpoint (official layout) → model package (model.json + ONNX graphs).
+
+    python -m c4g.export --checkpoint c4g.ckpt --config official --out models/c4g-official
+    python -m c4g.export --random-init --seed 0 --config official --out /tmp/c4g-official-random
+
+The package contract (graph inputs / outputs, canonical Gaussian layout, model.json) is docs/package.md.
+Graphs are exported at a fixed input size, so the DINOv2 positional embedding (bicubic, antialiased
+resize of the 37 x 37 grid) and the RoPE tables are precomputed constants; T and B stay dynamic.
+The conversion to the canonical layout happens inside the decoder graph, and the last decoder layer
+computes only the query rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+import onnx
+import torch
+from torch import nn
+
+from .checkpoint import CheckpointError, load_into, read_state_dict, sha256
+from .config import PRESETS, C4GConfig
+from .decoder import to_canonical
+from .init import random_init
+from .model import C4G
+
+IR_VERSION = 10  # ONNX Runtime 1.31 reads IR <= 13; 10 is what opset 18 needs.
+OPSET = 18
+TWO_GB = 2**31
+GAUSSIAN_LAYOUT = [
+    "x", "y", "z", "scale_x", "scale_y", "scale_z", "rot_w", "rot_x", "rot_y", "rot_z", "opacity", "r", "g", "b",
+]  # fmt: skip
+
+
+class EncoderGraph(nn.Module):
+    def __init__(self, model: C4G):
+        super().__init__()
+        self.model = model
+        cfg, agg = model.cfg, model.backbone.aggregator
+        grid = cfg.grid
+        with torch.no_grad():
+            self.register_buffer("pos_embed", agg.patch_embed.interpolated_pos_embed(grid, grid).detach())
+            cos, sin = agg.rope.cos_sin(cfg.aggregator_dim // cfg.aggregator_heads, agg.token_positions(grid, grid))
+        self.register_buffer("rope_cos", cos)
+        self.register_buffer("rope_sin", sin)
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        return self.model.encode(frames, pos_embed=self.pos_embed, rope=(self.rope_cos, self.rope_sin))
+
+
+class DecoderGraph(nn.Module):
+    def __init__(self, model: C4G):
+        super().__init__()
+        self.model = model
+
+    def forward(self, features, context_times, target_times) -> torch.Tensor:
+        return self.model.decode_canonical(features, context_times, target_times)
+
+
+class FeatureDecoderGraph(nn.Module):
+    def __init__(self, model: C4G):
+        super().__init__()
+        self.model = model
+
+    def forward(self, features, context_times, target_times, context_feature_maps) -> torch.Tensor:
+        return self.model.decode_features(features, context_times, target_times, context_feature_maps)
+
+
+def _export_graph(module: nn.Module, args: tuple, path: Path, inputs: dict[str, dict[int, str]], output: dict[str, dict[int, str]]) -> None:
+    """Export one graph, then rewrite it with the project's IR version, weights outside the .onnx file
+    only when they exceed protobuf's 2 GB limit."""
+    with tempfile.TemporaryDirectory() as tmp:
+        raw = Path(tmp) / path.name
+        torch.onnx.export(
+            module,
+            args,
+            str(raw),
+            input_names=list(inputs),
+            output_names=list(output),
+            dynamic_axes={**inputs, **output},
+            opset_version=OPSET,
+            dynamo=False,
+            do_constant_folding=True,
+        )
+        proto = onnx.load(str(raw), load_external_data=True)
+    proto.ir_version = IR_VERSION
+    proto.producer_name = "c4g-export"
+    weight_bytes = sum(t.ByteSize() for t in proto.graph.initializer)
+    for stale in path.parent.glob(path.name + ".data"):
+        stale.unlink()
+    if weight_bytes >= TWO_GB - (64 << 20):
+        onnx.save_model(proto, str(path), save_as_external_data=True, all_tensors_to_one_file=True, location=path.name + ".data", size_threshold=1024)
+    else:
+        onnx.save_model(proto, str(path))
+    onnx.checker.check_model(str(path))
+
+
+def export_package(model: C4G, out: Path, name: str, version: str, provenance: dict, description: str = "") -> dict:
+    """Write the package for `model` into `out` and return its manifest."""
+    model = model.eval()
+    cfg = model.cfg
+    out.mkdir(parents=True, exist_ok=True)
+    t, b, p, c = 2, 2, cfg.tokens_per_frame, cfg.feature_width
+    frames = torch.zeros(t, 3, cfg.image_size, cfg.image_size)
+    features = torch.zeros(t, p, c)
+    ctx = torch.zeros(b, t)
+    tgt = torch.zeros(b)
+    files = {"encoder": "encoder.onnx", "decoder": "decoder.onnx"}
+    dyn_features = {0: "T"}
+    with torch.no_grad():
+        _export_graph(EncoderGraph(model), (frames,), out / files["encoder"], {"frames": {0: "T"}}, {"features": {0: "T"}})
+        _export_graph(
+            DecoderGraph(model),
+            (features, ctx, tgt),
+            out / files["decoder"],
+            {"features": dyn_features, "context_times": {0: "B", 1: "T"}, "target_times": {0: "B"}},
+            {"gaussians": {0: "B"}},
+        )
+        if model.feature_decoder is not None:
+            files["feature_decoder"] = "feature_decoder.onnx"
+            maps = torch.zeros(t, p, cfg.feature_dim)
+            _export_graph(
+                FeatureDecoderGraph(model),
+                (features, ctx, tgt, maps),
+                out / files["feature_decoder"],
+                {"features": dyn_features, "context_times": {0: "B", 1: "T"}, "target_times": {0: "B"}, "context_feature_maps": {0: "T"}},
+                {"gaussian_features": {0: "B"}},
+            )
+        elif (out / "feature_decoder.onnx").exists():
+            (out / "feature_decoder.onnx").unlink()
+    manifest = {
+        "format": "c4g-package",
+        "format_version": 1,
+        "name": name,
+        "version": version,
+        "description": description,
+        "provenance": provenance,
+        "input": {
+            "height": cfg.image_size,
+            "width": cfg.image_size,
+            "crop": "center-square",
+            "resize": "lanczos3",
+            "value_range": [-1.0, 1.0],
+        },
+        "patch_size": cfg.patch,
+        "tokens_per_frame": cfg.tokens_per_frame,
+        "feature_width": cfg.feature_width,
+        "gaussian_count": cfg.queries,
+        "gaussian_layout": GAUSSIAN_LAYOUT,
+        "time": {"embedding_dim": cfg.time_dim},
+        "precision": "f32",
+        "files": files,
+        "parameters": sum(v.numel() for v in model.state_dict().values()),
+        "architecture": cfg.to_dict(),
+    }
+    if model.feature_decoder is not None:
+        manifest["feature_decoder"] = {"feature_width": cfg.feature_dim}
+    (out / "model.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    return manifest
+
+
+def build_model(cfg: C4GConfig, seed: int, checkpoint: Path | None) -> C4G:
+    """The model the tool exports: seeded random weights, overwritten by the checkpoint when given
+    (so only what the checkpoint lacks, such as a feature decoder, keeps its random weights)."""
+    model = C4G(cfg)
+    random_init(model, seed=seed)
+    if checkpoint is not None:
+        load_into(model, read_state_dict(checkpoint))
+    return model.eval()
+
+
+def _config(arg: str, feature_dim: int) -> C4GConfig:
+    if arg in PRESETS:
+        base = PRESETS[arg].to_dict()
+    else:
+        base = json.loads(Path(arg).read_text())
+    base["feature_dim"] = feature_dim
+    return C4GConfig.from_dict(base)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m c4g.export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--checkpoint", type=Path, help="checkpoint in the official layout (local path)")
+    src.add_argument("--random-init", action="store_true", help="random weights (to measure cost at a given size)")
+    ap.add_argument("--config", default="official", help=f"size preset ({', '.join(PRESETS)}) or a JSON file of C4GConfig fields")
+    ap.add_argument("--feature-dim", type=int, default=0, help="add a feature-lifting decoder for F-wide 2D features (0: none)")
+    ap.add_argument("--seed", type=int, default=0, help="seed for random weights (the model, or the feature decoder only)")
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--name", default=None)
+    ap.add_argument("--version", default="0.1.0")
+    args = ap.parse_args(argv)
+    cfg = _config(args.config, args.feature_dim)
+    try:
+        model = build_model(cfg, args.seed, args.checkpoint)
+    except (CheckpointError, FileNotFoundError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if args.checkpoint:
+        provenance = {"kind": "checkpoint", "source": args.checkpoint.name, "sha256": sha256(args.checkpoint)}
+        if cfg.feature_dim:
+            provenance["feature_decoder"] = f"random init, seed {args.seed} (the checkpoint has none)"
+    else:
+        provenance = {"kind": "random-init", "seed": args.seed}
+    name = args.name or args.out.name
+    manifest = export_package(model, args.out, name, args.version, provenance)
+    print(f"wrote {args.out} ({manifest['parameters']:,} parameters; files: {', '.join(manifest['files'].values())})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

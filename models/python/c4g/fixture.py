@@ -1,0 +1,103 @@
+"""Builds the committed test fixture `models/fixtures/c4g-small/`:
+
+- the package: the reduced official reference checkpoint (`../shared/reference/c4g-official-small/`)
+  exported with our export tool, plus a feature-lifting decoder with seeded random weights (the
+  official checkpoint has none);
+- `reference.safetensors` + `reference.json`: inputs and outputs of the PyTorch mirror on real frames
+  (the bedroom clip, preprocessed with Pillow), for T in {1, 4, 16}, targets at both ends of the span
+  and between frames, under both time policies.
+
+    python -m c4g.fixture --shared ../shared --out models/fixtures/c4g-small
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+from safetensors.numpy import save_file
+
+from .checkpoint import load_into, read_state_dict
+from .config import OFFICIAL_SMALL, C4GConfig
+from .export import export_package
+from .init import random_init
+from .model import C4G
+from .preprocess import preprocess_u8, to_model_input
+from .time_policy import normalise_batch
+
+FEATURE_DIM = 32
+FEATURE_SEED = 1
+FRAME_STRIDE = 2  # as the reference's qualitative script: context frames at a temporal stride of 2
+
+# (name, number of context frames, target timestamps in source frame indices, policy)
+CASES = [
+    ("T1", 1, [0.0], "stable"),
+    ("T4", 4, [0.0, 1.0, 3.0, 6.0], "stable"),
+    ("T4_reference", 4, [1.0, 3.0, 6.0], "reference"),
+    ("T16", 16, [0.0, 1.0, 15.0, 29.5, 30.0], "stable"),
+    ("T16_reference", 16, [1.0, 15.0, 30.0], "reference"),
+]
+
+
+def build(shared: Path, out: Path) -> None:
+    ckpt = shared / "reference/c4g-official-small/c4g_official_small.ckpt"
+    cfg = C4GConfig.from_dict({**OFFICIAL_SMALL.to_dict(), "feature_dim": FEATURE_DIM})
+    model = C4G(cfg)
+    random_init(model, seed=FEATURE_SEED)
+    load_into(model, read_state_dict(ckpt))
+    model.eval()
+    provenance = {
+        "kind": "checkpoint",
+        "source": "shared/reference/c4g-official-small/c4g_official_small.ckpt (random weights, reduced sizes, official layout)",
+        "feature_decoder": f"random init, seed {FEATURE_SEED} (the checkpoint has none)",
+    }
+    export_package(model, out, "c4g-small", "0.1.0", provenance, "Test fixture: the reduced official reference model.")
+
+    n_frames = max(c[1] for c in CASES)
+    paths = sorted((shared / "data/bedroom/frames").glob("*.jpg"))[: n_frames * FRAME_STRIDE : FRAME_STRIDE]
+    frames_u8 = np.stack([preprocess_u8(Image.open(p), cfg.image_size) for p in paths])
+    tensors = {"frames_u8": frames_u8}
+    rng = np.random.default_rng(FEATURE_SEED)
+    tensors["feature_maps"] = rng.standard_normal((n_frames, cfg.tokens_per_frame, FEATURE_DIM)).astype(np.float32)
+    index = []
+    with torch.no_grad():
+        for name, t, targets, policy in CASES:
+            times = [float(i * FRAME_STRIDE) for i in range(t)]
+            frames = torch.from_numpy(to_model_input(frames_u8[:t]))
+            features = model.encode(frames)
+            ctx, tgt = normalise_batch(times, targets, policy)
+            ctx_t, tgt_t = torch.from_numpy(ctx), torch.from_numpy(tgt)
+            tensors[f"{name}/features"] = features.numpy()
+            tensors[f"{name}/gaussians"] = model.decode_canonical(features, ctx_t, tgt_t).numpy()
+            maps = torch.from_numpy(tensors["feature_maps"][:t])
+            tensors[f"{name}/gaussian_features"] = model.decode_features(features, ctx_t, tgt_t, maps).numpy()
+            index.append({"case": name, "frames": t, "times": times, "targets": targets, "policy": policy})
+    # Features are stored for the small cases only, to keep the fixture small; T16 is checked end to end.
+    for name in ("T16", "T16_reference", "T4_reference"):
+        del tensors[f"{name}/features"]
+    save_file({k: np.ascontiguousarray(v) for k, v in tensors.items()}, str(out / "reference.safetensors"))
+    meta = {
+        "about": "Inputs and outputs of the PyTorch mirror (models/python) for this package; made by c4g.fixture.",
+        "frames": f"frames_u8 [T, H, W, 3]: bedroom frames {[p.name for p in paths]} centre-cropped and Lanczos-resized by Pillow; model input is (x / 255 - 0.5) / 0.5 in CHW",
+        "feature_maps": "feature_maps [T, P, F]: seeded normal noise, the 2D features lifted by feature_decoder.onnx",
+        "outputs": "<case>/gaussians [B, N, 14] canonical layout; <case>/gaussian_features [B, N, F]; <case>/features [T, P, C] (small cases only)",
+        "cases": index,
+    }
+    (out / "reference.json").write_text(json.dumps(meta, indent=2) + "\n")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--shared", type=Path, default=Path("../shared"))
+    ap.add_argument("--out", type=Path, default=Path("models/fixtures/c4g-small"))
+    args = ap.parse_args()
+    build(args.shared, args.out)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
