@@ -1,0 +1,209 @@
+//! What goes into the encoder ([`ContextFrame`]) and what comes out of it ([`Encoding`]).
+//!
+//! An encoding is computed once per clip and cached; every decode reads it. It keeps its frames in
+//! time order (the encoder treats the first frame specially and the scene lives in the first
+//! frame's camera, so the order is part of the result) and remembers where each came from in the
+//! caller's list, so that per-frame inputs given later in the caller's order (2D feature maps for
+//! lifting) can be matched to the encoded frames.
+
+use crate::{EngineError, Result};
+
+/// One context frame: its time and its preprocessed pixels (`[3, H, W]` at the package's input
+/// size, values in the package's `value_range`; see [`crate::preprocess`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ContextFrame {
+    /// Timestamp, seconds or frame index (any unit, as long as targets use the same one).
+    pub time: f64,
+    /// Channel-first pixels.
+    pub pixels: Vec<f32>,
+}
+
+impl ContextFrame {
+    /// A frame at `time` with preprocessed `pixels`.
+    pub fn new(time: f64, pixels: Vec<f32>) -> Self {
+        Self { time, pixels }
+    }
+}
+
+/// The encoder's output for a set of context frames, with what decoding needs to know about them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Encoding {
+    times: Vec<f64>,
+    frame_order: Vec<usize>,
+    features: Vec<f32>,
+    shape: [usize; 3],
+}
+
+impl Encoding {
+    /// Assembles an encoding from its parts (a cached or reference encoding, for example).
+    ///
+    /// `times` are the encoded frames' times in encoded order (finite, non-decreasing);
+    /// `frame_order[k]` is the position, in the caller's original list, of encoded frame `k`
+    /// (a permutation of `0..T`); `features` is `[T, P, C]` row-major with `shape = [T, P, C]`.
+    pub fn from_parts(
+        times: Vec<f64>,
+        frame_order: Vec<usize>,
+        features: Vec<f32>,
+        shape: [usize; 3],
+    ) -> Result<Self> {
+        let [t, p, c] = shape;
+        if t == 0 {
+            return Err(EngineError::InvalidInput(
+                "an encoding needs at least one frame".to_owned(),
+            ));
+        }
+        if times.len() != t || frame_order.len() != t {
+            return Err(EngineError::InvalidInput(format!(
+                "an encoding of {t} frames needs {t} times and {t} frame positions, got {} and {}",
+                times.len(),
+                frame_order.len()
+            )));
+        }
+        if let Some(&value) = times.iter().find(|v| !v.is_finite()) {
+            return Err(EngineError::NonFiniteTime {
+                what: "context",
+                value,
+            });
+        }
+        if times.windows(2).any(|w| w[0] > w[1]) {
+            return Err(EngineError::InvalidInput(format!(
+                "encoded frame times must be in increasing order, got {times:?}"
+            )));
+        }
+        let mut seen = vec![false; t];
+        for &i in &frame_order {
+            if i >= t || std::mem::replace(&mut seen[i], true) {
+                return Err(EngineError::InvalidInput(format!(
+                    "frame order {frame_order:?} is not a permutation of 0..{t}"
+                )));
+            }
+        }
+        let expected = t.checked_mul(p).and_then(|tp| tp.checked_mul(c));
+        if expected != Some(features.len()) {
+            return Err(EngineError::InvalidInput(format!(
+                "features hold {} values, shape {shape:?} needs {}",
+                features.len(),
+                expected.map_or_else(|| "more than fit in memory".to_owned(), |n| n.to_string())
+            )));
+        }
+        Ok(Self {
+            times: times.into_iter().map(|t| t + 0.0).collect(),
+            frame_order,
+            features,
+            shape,
+        })
+    }
+
+    /// Times of the encoded frames, in encoded (increasing) order.
+    pub fn times(&self) -> &[f64] {
+        &self.times
+    }
+
+    /// `frame_order()[k]` is the position of encoded frame `k` in the list given to `encode`.
+    pub fn frame_order(&self) -> &[usize] {
+        &self.frame_order
+    }
+
+    /// Encoder features, `[T, P, C]` row-major, in encoded order.
+    pub fn features(&self) -> &[f32] {
+        &self.features
+    }
+
+    /// `[T, P, C]`: frames, tokens per frame, feature width.
+    pub fn shape(&self) -> [usize; 3] {
+        self.shape
+    }
+
+    /// Number of encoded frames, T.
+    pub fn frame_count(&self) -> usize {
+        self.shape[0]
+    }
+
+    /// The earliest and latest context time: the span a target must lie in.
+    pub fn time_span(&self) -> (f64, f64) {
+        (self.times[0], self.times[self.times.len() - 1])
+    }
+
+    /// Takes the encoding apart into `(times, frame_order, features, shape)`.
+    pub fn into_parts(self) -> (Vec<f64>, Vec<usize>, Vec<f32>, [usize; 3]) {
+        (self.times, self.frame_order, self.features, self.shape)
+    }
+}
+
+/// The order in which `frames` are encoded: by time, ties broken by the pixel data compared
+/// bitwise and lexicographically, so the result does not depend on the order they were given in
+/// (identical frames at the same time are interchangeable). Times must be finite.
+pub(crate) fn encoding_order(frames: &[ContextFrame]) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..frames.len()).collect();
+    order.sort_by(|&a, &b| {
+        let (fa, fb) = (&frames[a], &frames[b]);
+        (fa.time + 0.0)
+            .total_cmp(&(fb.time + 0.0))
+            .then_with(|| compare_bits(&fa.pixels, &fb.pixels))
+    });
+    order
+}
+
+/// Lexicographic order of the values' bit patterns.
+fn compare_bits(a: &[f32], b: &[f32]) -> std::cmp::Ordering {
+    a.iter()
+        .map(|v| v.to_bits())
+        .cmp(b.iter().map(|v| v.to_bits()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frame(time: f64, first: f32) -> ContextFrame {
+        ContextFrame::new(time, vec![first, 0.5, -0.5])
+    }
+
+    #[test]
+    fn frames_are_ordered_by_time() {
+        let frames = [frame(4.0, 0.0), frame(0.0, 0.0), frame(2.0, 0.0)];
+        assert_eq!(encoding_order(&frames), vec![1, 2, 0]);
+    }
+
+    #[test]
+    fn frames_at_the_same_time_are_ordered_by_content() {
+        let a = [frame(1.0, 0.25), frame(1.0, 0.125), frame(0.0, 0.9)];
+        let b = [frame(1.0, 0.125), frame(0.0, 0.9), frame(1.0, 0.25)];
+        let content = |frames: &[ContextFrame]| {
+            encoding_order(frames)
+                .into_iter()
+                .map(|i| frames[i].clone())
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(content(&a), content(&b));
+        assert_eq!(content(&a)[0].time, 0.0);
+        assert_eq!(content(&a)[1].pixels[0], 0.125);
+    }
+
+    #[test]
+    fn negative_zero_and_zero_are_the_same_time() {
+        let frames = [frame(0.0, 0.5), frame(-0.0, 0.25)];
+        assert_eq!(encoding_order(&frames), vec![1, 0]);
+    }
+
+    #[test]
+    fn from_parts_accepts_a_consistent_encoding() {
+        let e = Encoding::from_parts(vec![0.0, 2.0], vec![1, 0], vec![0.0; 2 * 3 * 4], [2, 3, 4])
+            .unwrap();
+        assert_eq!(e.time_span(), (0.0, 2.0));
+        assert_eq!(e.frame_order(), &[1, 0]);
+        assert_eq!(e.frame_count(), 2);
+    }
+
+    #[test]
+    fn from_parts_rejects_inconsistent_parts() {
+        let f = || vec![0.0; 2 * 3 * 4];
+        assert!(Encoding::from_parts(vec![2.0, 0.0], vec![0, 1], f(), [2, 3, 4]).is_err());
+        assert!(Encoding::from_parts(vec![0.0, f64::NAN], vec![0, 1], f(), [2, 3, 4]).is_err());
+        assert!(Encoding::from_parts(vec![0.0, 1.0], vec![0, 0], f(), [2, 3, 4]).is_err());
+        assert!(Encoding::from_parts(vec![0.0, 1.0], vec![0, 2], f(), [2, 3, 4]).is_err());
+        assert!(Encoding::from_parts(vec![0.0, 1.0], vec![0, 1], vec![0.0; 5], [2, 3, 4]).is_err());
+        assert!(Encoding::from_parts(vec![0.0], vec![0], f(), [1, usize::MAX, 2]).is_err());
+        assert!(Encoding::from_parts(vec![], vec![], vec![], [0, 3, 4]).is_err());
+    }
+}

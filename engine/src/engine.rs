@@ -1,0 +1,478 @@
+//! The engine: one model package on ONNX Runtime, from context frames to Gaussian sets.
+//!
+//! `encode` runs once per clip (all context frames in one encoder run: the encoder attends across
+//! frames); `decode` runs the small decoder once per target time, batching targets up to
+//! `max_batch` per run and fewer when one run would exceed `decoder_memory_budget` (the exported
+//! decoder's attention memory grows with the square of the token count). Every shape is checked against the package's manifest before it reaches
+//! ONNX Runtime, and every output against the contract after, so a caller sees a clear error
+//! rather than a runtime shape failure or a silently wrong scene.
+//!
+//! ONNX Runtime's sessions run through `&mut` in `ort` 2.0, so each session sits behind a mutex:
+//! the engine is `Send + Sync` and calls on one graph are serialised (ONNX Runtime already uses
+//! every core inside one run; more throughput means more engines or a GPU).
+
+use std::path::Path;
+use std::sync::{Mutex, MutexGuard, PoisonError};
+
+use c4g_renderer::{FeatureBlock, GaussianSet};
+use image::RgbImage;
+use ort::session::{Session, SessionOutputs};
+use ort::value::TensorRef;
+
+use crate::encoding::{ContextFrame, Encoding, encoding_order};
+use crate::error::ShapeDim::{Fixed, Free};
+use crate::graph::{Contract, GAUSSIAN_CHANNELS};
+use crate::package::{Manifest, Package};
+use crate::runtime::{EngineOptions, create_session};
+use crate::time::NormalizedTimes;
+use crate::{EngineError, Result, preprocess};
+
+/// Heads assumed when a package does not declare `architecture.decoder_heads` (C4G's own count).
+const DEFAULT_DECODER_HEADS: usize = 16;
+
+/// A loaded model package, ready to encode clips and decode Gaussian sets.
+pub struct Engine {
+    package: Package,
+    options: EngineOptions,
+    encoder: Mutex<Session>,
+    decoder: Mutex<Session>,
+    feature_decoder: Option<Mutex<Session>>,
+}
+
+impl std::fmt::Debug for Engine {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Engine")
+            .field("package", &self.package.dir())
+            .field("options", &self.options)
+            .field("feature_decoder", &self.feature_decoder.is_some())
+            .finish()
+    }
+}
+
+impl Engine {
+    /// Opens the package in `package_dir` and loads its graphs.
+    pub fn load(package_dir: impl AsRef<Path>, options: EngineOptions) -> Result<Self> {
+        Self::from_package(Package::open(package_dir)?, options)
+    }
+
+    /// Loads the graphs of an opened package, checking each against the package contract.
+    pub fn from_package(package: Package, options: EngineOptions) -> Result<Self> {
+        if options.max_batch == 0 {
+            return Err(EngineError::InvalidInput(
+                "max_batch must be at least 1".to_owned(),
+            ));
+        }
+        let m = package.manifest();
+        let load = |path: &Path, contract: Contract| -> Result<Mutex<Session>> {
+            let session = create_session(path, &options)?;
+            contract.check(&session, package.dir())?;
+            Ok(Mutex::new(session))
+        };
+        let encoder = load(&package.encoder_path(), Contract::encoder(m))?;
+        let decoder = load(&package.decoder_path(), Contract::decoder(m))?;
+        let feature_decoder = match (package.feature_decoder_path(), m.feature_decoder_width()) {
+            (Some(path), Some(width)) => Some(load(&path, Contract::feature_decoder(m, width))?),
+            _ => None,
+        };
+        Ok(Self {
+            package,
+            options,
+            encoder,
+            decoder,
+            feature_decoder,
+        })
+    }
+
+    /// The package this engine runs.
+    pub fn package(&self) -> &Package {
+        &self.package
+    }
+
+    /// The package's manifest.
+    pub fn manifest(&self) -> &Manifest {
+        self.package.manifest()
+    }
+
+    /// The options the engine was loaded with.
+    pub fn options(&self) -> &EngineOptions {
+        &self.options
+    }
+
+    /// True when the package can lift feature maps onto its Gaussians.
+    pub fn has_feature_decoder(&self) -> bool {
+        self.feature_decoder.is_some()
+    }
+
+    /// The package's preprocessing of one decoded RGB frame: `[3, H, W]` encoder input.
+    pub fn preprocess(&self, frame: &RgbImage) -> Result<Vec<f32>> {
+        preprocess::preprocess(frame, &self.manifest().input)
+    }
+
+    /// Encodes context frames into an [`Encoding`].
+    ///
+    /// Frames are encoded in time order (ties by pixel content), whatever order they come in; the
+    /// encoding remembers where each came from.
+    pub fn encode(&self, frames: &[ContextFrame]) -> Result<Encoding> {
+        self.check_frames(frames)?;
+        let order = encoding_order(frames);
+        let mut pixels = Vec::with_capacity(frames.len() * frames[0].pixels.len());
+        for &i in &order {
+            pixels.extend_from_slice(&frames[i].pixels);
+        }
+        let m = self.manifest();
+        let (t, h, w) = (
+            frames.len(),
+            m.input.height as usize,
+            m.input.width as usize,
+        );
+        let (p, c) = (m.tokens_per_frame, m.feature_width);
+        let input = TensorRef::from_array_view(([t, 3, h, w], pixels.as_slice()))
+            .map_err(EngineError::ort("preparing the frames tensor"))?;
+        let mut session = lock(&self.encoder);
+        let outputs = session
+            .run(ort::inputs!["frames" => input])
+            .map_err(EngineError::ort("running the encoder"))?;
+        let features = output(&outputs, "encoder", "features", &[t, p, c])?.to_vec();
+        let times = order.iter().map(|&i| frames[i].time).collect();
+        Encoding::from_parts(times, order, features, [t, p, c])
+    }
+
+    /// Decodes the Gaussians at each target time, normalising times with the engine's policy.
+    pub fn decode(&self, encoding: &Encoding, targets: &[f64]) -> Result<Vec<GaussianSet>> {
+        let times = self
+            .options
+            .time_policy
+            .normalize_all(encoding.times(), targets)?;
+        self.decode_normalized(encoding, &times)
+    }
+
+    /// Decodes the Gaussians for already-normalised times (one row per target, context times in
+    /// the encoding's order): the decoder with nothing in front of it, for parity tests and for
+    /// callers with their own time policy.
+    pub fn decode_normalized(
+        &self,
+        encoding: &Encoding,
+        times: &[NormalizedTimes],
+    ) -> Result<Vec<GaussianSet>> {
+        self.check_encoding(encoding, times)?;
+        let batch = self.decode_batch_size(encoding.frame_count());
+        let mut sets = Vec::with_capacity(times.len());
+        for chunk in times.chunks(batch) {
+            sets.extend(self.decode_chunk(encoding, chunk, None)?);
+        }
+        Ok(sets)
+    }
+
+    /// Decodes the Gaussians at each target time with one lifted feature vector per Gaussian.
+    ///
+    /// `context_feature_maps` is `[T, P, F]` (one F-wide vector per patch of each context frame),
+    /// frames in the order they were given to [`encode`](Self::encode).
+    pub fn decode_features(
+        &self,
+        encoding: &Encoding,
+        context_feature_maps: &[f32],
+        targets: &[f64],
+    ) -> Result<Vec<GaussianSet>> {
+        let times = self
+            .options
+            .time_policy
+            .normalize_all(encoding.times(), targets)?;
+        self.decode_features_normalized(encoding, context_feature_maps, &times)
+    }
+
+    /// [`decode_features`](Self::decode_features) for already-normalised times.
+    pub fn decode_features_normalized(
+        &self,
+        encoding: &Encoding,
+        context_feature_maps: &[f32],
+        times: &[NormalizedTimes],
+    ) -> Result<Vec<GaussianSet>> {
+        let width = self.feature_width()?;
+        self.check_encoding(encoding, times)?;
+        let maps = self.encoded_order_maps(encoding, context_feature_maps, width)?;
+        let batch = self.decode_batch_size(encoding.frame_count());
+        let mut sets = Vec::with_capacity(times.len());
+        for chunk in times.chunks(batch) {
+            sets.extend(self.decode_chunk(encoding, chunk, Some((&maps, width)))?);
+        }
+        Ok(sets)
+    }
+
+    /// Targets per decoder run for an encoding of `frames` frames: `max_batch`, lowered so that
+    /// one run's estimated attention memory stays within `decoder_memory_budget` (never below 1).
+    pub fn decode_batch_size(&self, frames: usize) -> usize {
+        let max = self.options.max_batch.max(1);
+        if self.options.decoder_memory_budget == 0 {
+            return max;
+        }
+        let m = self.manifest();
+        let tokens = (frames * m.tokens_per_frame + m.gaussian_count) as f64;
+        let heads = m.decoder_heads().unwrap_or(DEFAULT_DECODER_HEADS) as f64;
+        let per_target = 2.0 * heads * tokens * tokens * std::mem::size_of::<f32>() as f64;
+        let fits = (self.options.decoder_memory_budget as f64 / per_target).floor();
+        (fits as usize).clamp(1, max)
+    }
+
+    fn feature_width(&self) -> Result<usize> {
+        match (
+            &self.feature_decoder,
+            self.manifest().feature_decoder_width(),
+        ) {
+            (Some(_), Some(width)) => Ok(width),
+            _ => Err(EngineError::NoFeatureDecoder {
+                package: self.manifest().name.clone(),
+            }),
+        }
+    }
+
+    fn check_frames(&self, frames: &[ContextFrame]) -> Result<()> {
+        if frames.is_empty() {
+            return Err(EngineError::InvalidInput(
+                "encoding needs at least one context frame".to_owned(),
+            ));
+        }
+        let input = &self.manifest().input;
+        let expected = 3 * input.height as usize * input.width as usize;
+        for (i, frame) in frames.iter().enumerate() {
+            if !frame.time.is_finite() {
+                return Err(EngineError::NonFiniteTime {
+                    what: "context",
+                    value: frame.time,
+                });
+            }
+            if frame.pixels.len() != expected {
+                return Err(EngineError::InvalidInput(format!(
+                    "frame {i} holds {} values; the package expects preprocessed [3, {}, {}] frames ({expected} values)",
+                    frame.pixels.len(),
+                    input.height,
+                    input.width
+                )));
+            }
+            if frame.pixels.iter().any(|v| !v.is_finite()) {
+                return Err(EngineError::InvalidInput(format!(
+                    "frame {i} has pixel values that are not finite"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    fn check_encoding(&self, encoding: &Encoding, times: &[NormalizedTimes]) -> Result<()> {
+        let m = self.manifest();
+        let [t, p, c] = encoding.shape();
+        if p != m.tokens_per_frame || c != m.feature_width {
+            return Err(EngineError::shape(
+                "the encoding's features",
+                &[Free("T"), Fixed(m.tokens_per_frame), Fixed(m.feature_width)],
+                &[t, p, c],
+            ));
+        }
+        for (b, row) in times.iter().enumerate() {
+            if row.context.len() != t {
+                return Err(EngineError::shape(
+                    format!("context times of target {b}"),
+                    &[Fixed(t)],
+                    &[row.context.len()],
+                ));
+            }
+            if !row.target.is_finite() || row.context.iter().any(|v| !v.is_finite()) {
+                return Err(EngineError::InvalidInput(format!(
+                    "normalised times of target {b} are not all finite"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// The caller's `[T, P, F]` feature maps, checked and rearranged into the encoding's order.
+    fn encoded_order_maps(
+        &self,
+        encoding: &Encoding,
+        maps: &[f32],
+        width: usize,
+    ) -> Result<Vec<f32>> {
+        let (t, p) = (encoding.frame_count(), self.manifest().tokens_per_frame);
+        let per_frame = p * width;
+        if maps.len() != t * per_frame {
+            return Err(EngineError::Shape {
+                what: "context feature maps".to_owned(),
+                expected: format!("[{t}, {p}, {width}] ({} values)", t * per_frame),
+                actual: format!("{} values", maps.len()),
+            });
+        }
+        if maps.iter().any(|v| !v.is_finite()) {
+            return Err(EngineError::InvalidInput(
+                "context feature maps hold values that are not finite".to_owned(),
+            ));
+        }
+        let mut ordered = Vec::with_capacity(maps.len());
+        for &i in encoding.frame_order() {
+            ordered.extend_from_slice(&maps[i * per_frame..(i + 1) * per_frame]);
+        }
+        Ok(ordered)
+    }
+
+    /// One decoder run (and one feature-decoder run when `maps` is given) for one batch of
+    /// targets.
+    fn decode_chunk(
+        &self,
+        encoding: &Encoding,
+        times: &[NormalizedTimes],
+        maps: Option<(&[f32], usize)>,
+    ) -> Result<Vec<GaussianSet>> {
+        let inputs = DecoderInputs::new(encoding, times);
+        let gaussians = self.run_decoder(&inputs)?;
+        let lifted = match maps {
+            Some((maps, width)) => Some((self.run_feature_decoder(&inputs, maps, width)?, width)),
+            None => None,
+        };
+        let n = self.manifest().gaussian_count;
+        (0..inputs.batch)
+            .map(|i| {
+                let invalid = |e: c4g_renderer::RendererError| {
+                    EngineError::ModelOutput(format!("target {i}: {e}"))
+                };
+                let per_set = n * GAUSSIAN_CHANNELS;
+                let mut set =
+                    GaussianSet::from_canonical(&gaussians[i * per_set..(i + 1) * per_set])
+                        .map_err(invalid)?;
+                if let Some((values, width)) = &lifted {
+                    let rows = values[i * n * width..(i + 1) * n * width].to_vec();
+                    let block = FeatureBlock::new(*width, rows).map_err(invalid)?;
+                    set = set.with_features(block).map_err(invalid)?;
+                }
+                set.validate().map_err(invalid)?;
+                Ok(set)
+            })
+            .collect()
+    }
+
+    /// `gaussians` [B, N, 14] for one batch.
+    fn run_decoder(&self, inputs: &DecoderInputs<'_>) -> Result<Vec<f32>> {
+        let (features, context_times, target_times) = inputs.tensors()?;
+        let mut session = lock(&self.decoder);
+        let outputs = session
+            .run(ort::inputs![
+                "features" => features,
+                "context_times" => context_times,
+                "target_times" => target_times,
+            ])
+            .map_err(EngineError::ort("running the decoder"))?;
+        let shape = [
+            inputs.batch,
+            self.manifest().gaussian_count,
+            GAUSSIAN_CHANNELS,
+        ];
+        Ok(output(&outputs, "decoder", "gaussians", &shape)?.to_vec())
+    }
+
+    /// `gaussian_features` [B, N, F] for one batch; `maps` is `[T, P, F]` in encoded order.
+    fn run_feature_decoder(
+        &self,
+        inputs: &DecoderInputs<'_>,
+        maps: &[f32],
+        width: usize,
+    ) -> Result<Vec<f32>> {
+        let Some(session) = &self.feature_decoder else {
+            return Err(EngineError::NoFeatureDecoder {
+                package: self.manifest().name.clone(),
+            });
+        };
+        let (features, context_times, target_times) = inputs.tensors()?;
+        let [t, p, _] = inputs.shape;
+        let maps = TensorRef::from_array_view(([t, p, width], maps))
+            .map_err(EngineError::ort("preparing the context feature maps"))?;
+        let mut session = lock(session);
+        let outputs = session
+            .run(ort::inputs![
+                "features" => features,
+                "context_times" => context_times,
+                "target_times" => target_times,
+                "context_feature_maps" => maps,
+            ])
+            .map_err(EngineError::ort("running the feature decoder"))?;
+        let shape = [inputs.batch, self.manifest().gaussian_count, width];
+        Ok(output(&outputs, "feature decoder", "gaussian_features", &shape)?.to_vec())
+    }
+}
+
+/// What every decoder graph takes for one batch of targets: the encoding's features and each
+/// target's normalised times, flattened to `[B, T]` and `[B]`.
+struct DecoderInputs<'a> {
+    features: &'a [f32],
+    shape: [usize; 3],
+    batch: usize,
+    context: Vec<f32>,
+    target: Vec<f32>,
+}
+
+impl<'a> DecoderInputs<'a> {
+    fn new(encoding: &'a Encoding, times: &[NormalizedTimes]) -> Self {
+        Self {
+            features: encoding.features(),
+            shape: encoding.shape(),
+            batch: times.len(),
+            context: times
+                .iter()
+                .flat_map(|r| r.context.iter().copied())
+                .collect(),
+            target: times.iter().map(|r| r.target).collect(),
+        }
+    }
+
+    /// Borrowed tensors of `features`, `context_times` and `target_times`.
+    fn tensors(&self) -> Result<(TensorRef<'_, f32>, TensorRef<'_, f32>, TensorRef<'_, f32>)> {
+        let prepare = || EngineError::ort("preparing the decoder's inputs");
+        let [t, _, _] = self.shape;
+        Ok((
+            TensorRef::from_array_view((self.shape, self.features)).map_err(prepare())?,
+            TensorRef::from_array_view(([self.batch, t], self.context.as_slice()))
+                .map_err(prepare())?,
+            TensorRef::from_array_view(([self.batch], self.target.as_slice())).map_err(prepare())?,
+        ))
+    }
+}
+
+fn lock(session: &Mutex<Session>) -> MutexGuard<'_, Session> {
+    // A panic while a run held the lock leaves the session itself intact.
+    session.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// The named f32 output of a run, checked against its expected shape.
+fn output<'o>(
+    outputs: &'o SessionOutputs<'_>,
+    graph: &str,
+    name: &str,
+    expected: &[usize],
+) -> Result<&'o [f32]> {
+    let value = outputs
+        .get(name)
+        .ok_or_else(|| EngineError::ModelOutput(format!("the {graph} returned no {name:?}")))?;
+    let (shape, data) = value
+        .try_extract_tensor::<f32>()
+        .map_err(EngineError::ort(format!("reading the {graph}'s {name:?}")))?;
+    let matches = shape.len() == expected.len()
+        && shape
+            .iter()
+            .zip(expected)
+            .all(|(&d, &e)| usize::try_from(d) == Ok(e));
+    if !matches || data.len() != expected.iter().product::<usize>() {
+        return Err(EngineError::ModelOutput(format!(
+            "the {graph}'s {name:?} has shape {:?}, expected {expected:?}",
+            &**shape
+        )));
+    }
+    Ok(data)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn engine_is_send_and_sync() {
+        fn assert_send_sync<T: Send + Sync>() {}
+        assert_send_sync::<Engine>();
+        assert_send_sync::<Encoding>();
+    }
+}

@@ -1,0 +1,158 @@
+//! The ONNX side of the package contract: which tensors each graph takes and returns.
+//!
+//! docs/package.md names every input and output and its shape; the manifest fills in the sizes.
+//! Checking a freshly loaded session against that turns a mismatched export into one clear error
+//! at load time, instead of an ONNX Runtime shape error on the first request.
+
+use std::path::Path;
+
+use ort::session::Session;
+use ort::value::{Outlet, TensorElementType};
+
+use crate::error::{ShapeDim, format_dims};
+use crate::package::Manifest;
+use crate::{EngineError, Result};
+
+/// Floats per Gaussian in the decoder's output.
+pub(crate) const GAUSSIAN_CHANNELS: usize = c4g_renderer::CANONICAL_CHANNELS;
+
+/// One named f32 tensor of a graph and its expected shape.
+pub(crate) struct Port {
+    pub(crate) name: &'static str,
+    pub(crate) dims: Vec<ShapeDim>,
+}
+
+fn port(name: &'static str, dims: Vec<ShapeDim>) -> Port {
+    Port { name, dims }
+}
+
+/// What one graph of the package must look like.
+pub(crate) struct Contract {
+    graph: &'static str,
+    inputs: Vec<Port>,
+    outputs: Vec<Port>,
+}
+
+use ShapeDim::{Fixed, Free};
+
+impl Contract {
+    /// `encoder.onnx`: frames [T, 3, H, W] → features [T, P, C].
+    pub(crate) fn encoder(m: &Manifest) -> Self {
+        let (h, w) = (m.input.height as usize, m.input.width as usize);
+        Self {
+            graph: "encoder",
+            inputs: vec![port(
+                "frames",
+                vec![Free("T"), Fixed(3), Fixed(h), Fixed(w)],
+            )],
+            outputs: vec![features(m)],
+        }
+    }
+
+    /// `decoder.onnx`: features, context_times [B, T], target_times [B] → gaussians [B, N, 14].
+    pub(crate) fn decoder(m: &Manifest) -> Self {
+        Self {
+            graph: "decoder",
+            inputs: decoder_inputs(m),
+            outputs: vec![port(
+                "gaussians",
+                vec![Free("B"), Fixed(m.gaussian_count), Fixed(GAUSSIAN_CHANNELS)],
+            )],
+        }
+    }
+
+    /// `feature_decoder.onnx`: the decoder's inputs plus context_feature_maps [T, P, F] →
+    /// gaussian_features [B, N, F].
+    pub(crate) fn feature_decoder(m: &Manifest, width: usize) -> Self {
+        let mut inputs = decoder_inputs(m);
+        inputs.push(port(
+            "context_feature_maps",
+            vec![Free("T"), Fixed(m.tokens_per_frame), Fixed(width)],
+        ));
+        Self {
+            graph: "feature_decoder",
+            inputs,
+            outputs: vec![port(
+                "gaussian_features",
+                vec![Free("B"), Fixed(m.gaussian_count), Fixed(width)],
+            )],
+        }
+    }
+
+    /// Checks a loaded session's declared inputs and outputs against the contract.
+    pub(crate) fn check(&self, session: &Session, dir: &Path) -> Result<()> {
+        let invalid = |reason: String| EngineError::InvalidPackage {
+            dir: dir.to_path_buf(),
+            reason: format!("{}.onnx: {reason}", self.graph),
+        };
+        for outlet in session.inputs() {
+            if !self.inputs.iter().any(|p| p.name == outlet.name()) {
+                return Err(invalid(format!(
+                    "unexpected input {:?} (the contract's inputs are {:?})",
+                    outlet.name(),
+                    self.inputs.iter().map(|p| p.name).collect::<Vec<_>>()
+                )));
+            }
+        }
+        for (role, ports, outlets) in [
+            ("input", &self.inputs, session.inputs()),
+            ("output", &self.outputs, session.outputs()),
+        ] {
+            for p in ports {
+                let outlet = outlets.iter().find(|o| o.name() == p.name).ok_or_else(|| {
+                    invalid(format!(
+                        "no {role} named {:?} (it has {:?})",
+                        p.name,
+                        outlets.iter().map(Outlet::name).collect::<Vec<_>>()
+                    ))
+                })?;
+                check_outlet(p, outlet).map_err(|reason| invalid(format!("{role} {reason}")))?;
+            }
+        }
+        Ok(())
+    }
+}
+
+fn features(m: &Manifest) -> Port {
+    port(
+        "features",
+        vec![Free("T"), Fixed(m.tokens_per_frame), Fixed(m.feature_width)],
+    )
+}
+
+fn decoder_inputs(m: &Manifest) -> Vec<Port> {
+    vec![
+        features(m),
+        port("context_times", vec![Free("B"), Free("T")]),
+        port("target_times", vec![Free("B")]),
+    ]
+}
+
+/// Why `outlet` does not fit `port`, if it does not. Dynamic dimensions (-1) fit anything.
+fn check_outlet(port: &Port, outlet: &Outlet) -> std::result::Result<(), String> {
+    let dtype = outlet.dtype();
+    if dtype.tensor_type() != Some(TensorElementType::Float32) {
+        return Err(format!(
+            "{:?} must be a float32 tensor, is {dtype}",
+            port.name
+        ));
+    }
+    let Some(shape) = dtype.tensor_shape() else {
+        return Err(format!("{:?} must be a tensor", port.name));
+    };
+    let fits = shape.len() == port.dims.len()
+        && shape.iter().zip(&port.dims).all(|(&d, want)| match want {
+            Fixed(n) => d < 0 || usize::try_from(d) == Ok(*n),
+            Free(_) => true,
+        });
+    if fits {
+        Ok(())
+    } else {
+        Err(format!(
+            "{:?} has shape {:?}, the package declares {}",
+            port.name,
+            &**shape,
+            format_dims(&port.dims)
+        ))
+    }
+}

@@ -1,0 +1,91 @@
+//! Shared helpers of the engine's integration tests: where the fixture package, the shared data
+//! and ONNX Runtime are, and deterministic synthetic frames.
+#![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
+
+use std::path::PathBuf;
+use std::sync::OnceLock;
+
+use c4g_engine::{ContextFrame, Engine, EngineOptions};
+
+/// Frame size of the fixture package.
+pub const SIZE: usize = 224;
+
+pub fn workspace() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+pub fn fixture_dir() -> PathBuf {
+    workspace().join("models/fixtures/c4g-small")
+}
+
+pub fn shared_dir() -> PathBuf {
+    std::env::var_os("C4G_SHARED")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| workspace().join("../shared"))
+}
+
+/// Why the tests that need ONNX Runtime and the fixture cannot run here, if they cannot.
+///
+/// Outside CI a missing piece skips the test with a message; in CI (`CI` set) it fails, so a
+/// misconfigured CI cannot pass by running nothing.
+pub fn skip_reason() -> Option<String> {
+    let reason = if std::env::var_os("ORT_DYLIB_PATH").is_none_or(|p| p.is_empty()) {
+        Some(
+            "ORT_DYLIB_PATH is not set (point it at libonnxruntime.so from the onnxruntime wheel)"
+                .to_owned(),
+        )
+    } else if !fixture_dir().join("model.json").is_file() {
+        Some(format!(
+            "fixture package {} not found",
+            fixture_dir().display()
+        ))
+    } else {
+        None
+    };
+    if let Some(reason) = &reason {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "in CI every engine test must run: {reason}"
+        );
+        eprintln!("skipped: {reason}");
+    }
+    reason
+}
+
+/// The fixture package with default options, loaded once per test binary.
+pub fn engine() -> &'static Engine {
+    static ENGINE: OnceLock<Engine> = OnceLock::new();
+    ENGINE.get_or_init(|| Engine::load(fixture_dir(), EngineOptions::default()).unwrap())
+}
+
+/// A deterministic, non-constant preprocessed frame (values in [-1, 1]), different per `seed`.
+pub fn synthetic_pixels(seed: u32) -> Vec<f32> {
+    let mut out = Vec::with_capacity(3 * SIZE * SIZE);
+    for c in 0..3u32 {
+        for y in 0..SIZE as u32 {
+            for x in 0..SIZE as u32 {
+                let phase = (x * (c + 1) + y * 3 + seed * 17) as f32 * 0.05;
+                out.push((phase.sin() * 0.8 + (seed as f32 * 0.1).cos() * 0.1).clamp(-1.0, 1.0));
+            }
+        }
+    }
+    out
+}
+
+/// Context frames at `times`, frame `i` with `synthetic_pixels(i)`.
+pub fn synthetic_frames(times: &[f64]) -> Vec<ContextFrame> {
+    times
+        .iter()
+        .enumerate()
+        .map(|(i, &t)| ContextFrame::new(t, synthetic_pixels(i as u32)))
+        .collect()
+}
+
+/// Largest absolute difference between two equally long slices.
+pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
