@@ -2,8 +2,8 @@
 //!
 //! `encode` runs once per clip (all context frames in one encoder run: the encoder attends across
 //! frames); `decode` runs the small decoder once per target time, batching targets up to
-//! `max_batch` per run and fewer when one run would exceed `decoder_memory_budget` (the exported
-//! decoder's attention memory grows with the square of the token count). Every shape is checked against the package's manifest before it reaches
+//! `max_batch` per run and fewer when one run would exceed `decoder_memory_budget`. Every shape
+//! is checked against the package's manifest before it reaches
 //! ONNX Runtime, and every output against the contract after, so a caller sees a clear error
 //! rather than a runtime shape failure or a silently wrong scene.
 //!
@@ -22,7 +22,7 @@ use ort::value::TensorRef;
 use crate::encoding::{ContextFrame, Encoding, encoding_order};
 use crate::error::ShapeDim::{Fixed, Free};
 use crate::graph::{Contract, GAUSSIAN_CHANNELS};
-use crate::package::{Manifest, Package};
+use crate::package::{AttentionKind, Manifest, Package};
 use crate::runtime::{EngineOptions, create_session};
 use crate::time::NormalizedTimes;
 use crate::{EngineError, Result, preprocess};
@@ -199,7 +199,12 @@ impl Engine {
     }
 
     /// Targets per decoder run for an encoding of `frames` frames: `max_batch`, lowered so that
-    /// one run's estimated attention memory stays within `decoder_memory_budget` (never below 1).
+    /// one run's estimated memory stays within `decoder_memory_budget` (never below 1).
+    ///
+    /// The estimate per target: with plain attention the score matrices dominate,
+    /// 2 · heads · L² floats (two layers' worth live at once); with fused attention only
+    /// activations remain, about 8 · C · L floats (q, k, v, attention output, residual and the
+    /// MLP's hidden rows), L = T·P + N tokens of width C.
     pub fn decode_batch_size(&self, frames: usize) -> usize {
         let max = self.options.max_batch.max(1);
         if self.options.decoder_memory_budget == 0 {
@@ -207,8 +212,14 @@ impl Engine {
         }
         let m = self.manifest();
         let tokens = (frames * m.tokens_per_frame + m.gaussian_count) as f64;
-        let heads = m.decoder_heads().unwrap_or(DEFAULT_DECODER_HEADS) as f64;
-        let per_target = 2.0 * heads * tokens * tokens * std::mem::size_of::<f32>() as f64;
+        let floats = match m.attention {
+            AttentionKind::Plain => {
+                let heads = m.decoder_heads().unwrap_or(DEFAULT_DECODER_HEADS) as f64;
+                2.0 * heads * tokens * tokens
+            }
+            AttentionKind::Fused => 8.0 * m.feature_width as f64 * tokens,
+        };
+        let per_target = floats * std::mem::size_of::<f32>() as f64;
         let fits = (self.options.decoder_memory_budget as f64 / per_target).floor();
         (fits as usize).clamp(1, max)
     }

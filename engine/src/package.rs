@@ -87,6 +87,9 @@ pub struct Manifest {
     pub gaussian_layout: Vec<String>,
     /// Numeric precision of the graphs' inputs and outputs; `"f32"`.
     pub precision: String,
+    /// How the graphs compute attention; decides how decoder memory grows with tokens.
+    #[serde(default)]
+    pub attention: AttentionKind,
     /// The ONNX files.
     pub files: PackageFiles,
     /// Present when the package can lift 2D features onto its Gaussians.
@@ -111,6 +114,19 @@ impl Manifest {
             .and_then(|h| usize::try_from(h).ok())
             .filter(|&h| h > 0)
     }
+}
+
+/// How a package's graphs compute attention (`model.json` key `attention`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AttentionKind {
+    /// MatMul / Softmax / MatMul: every score matrix (heads × L × L floats) is materialised.
+    /// Packages that do not say are taken to be plain.
+    #[default]
+    Plain,
+    /// ONNX Runtime's `com.microsoft.MultiHeadAttention`: flash attention on the CPU, fused
+    /// kernels on CUDA; memory grows linearly with the token count.
+    Fused,
 }
 
 /// A validated model package on disk.

@@ -45,10 +45,11 @@ pub struct EngineOptions {
     pub time_policy: TimePolicy,
     /// Most targets decoded in one decoder run; larger requests are split into chunks.
     pub max_batch: usize,
-    /// Bytes of attention working memory one decoder run may need; batches shrink (down to one
-    /// target) to stay under it. The exported decoder materialises every attention matrix, so a
-    /// target costs about `2 · heads · (T·P + N)² · 4` bytes: 2.4 GB for the fixture at T = 16,
-    /// ~5 GB for the official model. 0 disables the limit (only `max_batch` applies).
+    /// Bytes of working memory one decoder run may need; batches shrink (down to one target) to
+    /// stay under it. With fused attention a target costs about `8 · C · (T·P + N) · 4` bytes
+    /// (~350 MB for the official model at T = 16); a package exported with plain attention
+    /// materialises every score matrix, `2 · heads · (T·P + N)² · 4` bytes (~5 GB). 0 disables
+    /// the limit (only `max_batch` applies). See [`Engine::decode_batch_size`](crate::Engine::decode_batch_size).
     pub decoder_memory_budget: usize,
     /// Use ONNX Runtime's CPU memory arena. The arena reuses buffers across runs but holds on to
     /// the peak allocation of the largest request for the life of the session (gigabytes, for

@@ -139,11 +139,20 @@ fn batches_shrink_to_fit_the_decoder_memory_budget() {
     if skip_reason().is_some() {
         return;
     }
-    // Fixture decoder: 16 heads; at T = 16 one target needs 2 * 16 * 4352^2 * 4 B ≈ 2.4 GB.
+    // Fixture decoder (fused attention, width 128): at T = 16 one target needs about
+    // 8 · 128 · (16 · 256 + 256) · 4 B = 17.8 MB.
     let engine = engine();
-    assert_eq!(engine.decode_batch_size(1), 16);
-    assert_eq!(engine.decode_batch_size(16), 1);
-    assert_eq!(engine.decode_batch_size(8), 6); // 4 GiB / (2 · 16 · 2304² · 4 B) = 6.3
+    assert_eq!(engine.decode_batch_size(16), 16);
+    let tight = Engine::load(
+        fixture_dir(),
+        EngineOptions {
+            decoder_memory_budget: 50_000_000,
+            ..EngineOptions::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(tight.decode_batch_size(16), 2); // 50 MB / 17.8 MB = 2.8
+    assert_eq!(tight.decode_batch_size(1), 16); // 512 tokens: 2.1 MB a target
     let unlimited = Engine::load(
         fixture_dir(),
         EngineOptions {

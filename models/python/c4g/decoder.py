@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .attention import attention
 from .config import C4GConfig
 
 SH_C0 = 0.28209479177387814
@@ -43,24 +44,11 @@ class DecoderAttention(nn.Module):
         self.to_qkv = nn.Linear(dim, 3 * inner, bias=False)
         self.to_out = nn.Sequential(nn.Linear(inner, dim))
 
-    def split_heads(self, x: torch.Tensor) -> torch.Tensor:
-        b, n, _ = x.shape
-        return x.reshape(b, n, self.heads, self.head_dim).transpose(1, 2)
-
-    def merge_heads(self, x: torch.Tensor) -> torch.Tensor:
-        b, _, n, _ = x.shape
-        return x.transpose(1, 2).reshape(b, n, self.heads * self.head_dim)
-
-    def qkv(self, x: torch.Tensor, query_rows: int | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Heads-split q, k, v of norm(x); q only for the last `query_rows` rows when given."""
+    def forward(self, x: torch.Tensor, query_rows: int | None = None) -> torch.Tensor:
         q, k, v = self.to_qkv(self.norm(x)).chunk(3, dim=-1)
         if query_rows is not None:
             q = q[:, -query_rows:]
-        return self.split_heads(q), self.split_heads(k), self.split_heads(v)
-
-    def forward(self, x: torch.Tensor, query_rows: int | None = None) -> torch.Tensor:
-        q, k, v = self.qkv(x, query_rows)
-        return self.to_out(self.merge_heads(F.scaled_dot_product_attention(q, k, v)))
+        return self.to_out(attention(q, k, v, self.heads, self.head_dim))
 
 
 class FeedForward(nn.Module):

@@ -22,6 +22,7 @@ import onnx
 import torch
 from torch import nn
 
+from .attention import fused_export
 from .checkpoint import CheckpointError, load_into, read_state_dict, sha256
 from .config import PRESETS, C4GConfig
 from .decoder import to_canonical
@@ -99,8 +100,13 @@ def _export_graph(module: nn.Module, args: tuple, path: Path, inputs: dict[str, 
     onnx.checker.check_model(str(path))
 
 
-def export_package(model: C4G, out: Path, name: str, version: str, provenance: dict, description: str = "") -> dict:
-    """Write the package for `model` into `out` and return its manifest."""
+def export_package(
+    model: C4G, out: Path, name: str, version: str, provenance: dict, description: str = "", fused_attention: bool = True
+) -> dict:
+    """Write the package for `model` into `out` and return its manifest.
+
+    `fused_attention` exports attention as ONNX Runtime's MultiHeadAttention (flash attention on the
+    CPU, fused kernels on CUDA); without it, as plain MatMul / Softmax (any ONNX runtime)."""
     model = model.eval()
     cfg = model.cfg
     out.mkdir(parents=True, exist_ok=True)
@@ -111,7 +117,7 @@ def export_package(model: C4G, out: Path, name: str, version: str, provenance: d
     tgt = torch.zeros(b)
     files = {"encoder": "encoder.onnx", "decoder": "decoder.onnx"}
     dyn_features = {0: "T"}
-    with torch.no_grad():
+    with torch.no_grad(), fused_export(fused_attention):
         _export_graph(EncoderGraph(model), (frames,), out / files["encoder"], {"frames": {0: "T"}}, {"features": {0: "T"}})
         _export_graph(
             DecoderGraph(model),
@@ -153,6 +159,7 @@ def export_package(model: C4G, out: Path, name: str, version: str, provenance: d
         "gaussian_layout": GAUSSIAN_LAYOUT,
         "time": {"embedding_dim": cfg.time_dim},
         "precision": "f32",
+        "attention": "fused" if fused_attention else "plain",
         "files": files,
         "parameters": sum(v.numel() for v in model.state_dict().values()),
         "architecture": cfg.to_dict(),
@@ -193,6 +200,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--name", default=None)
     ap.add_argument("--version", default="0.1.0")
+    ap.add_argument(
+        "--attention",
+        choices=["fused", "plain"],
+        default="fused",
+        help="fused: ONNX Runtime's MultiHeadAttention (flash attention on CPU); plain: MatMul/Softmax",
+    )
     args = ap.parse_args(argv)
     cfg = _config(args.config, args.feature_dim)
     try:
@@ -207,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         provenance = {"kind": "random-init", "seed": args.seed}
     name = args.name or args.out.name
-    manifest = export_package(model, args.out, name, args.version, provenance)
+    manifest = export_package(model, args.out, name, args.version, provenance, fused_attention=args.attention == "fused")
     print(f"wrote {args.out} ({manifest['parameters']:,} parameters; files: {', '.join(manifest['files'].values())})")
     return 0
 

@@ -10,6 +10,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .attention import attention
+
 
 class RotaryEmbedding2D(nn.Module):
     """2D rotary position embedding: the first half of each head's channels rotates with the patch row,
@@ -70,8 +72,8 @@ class Attention(nn.Module):
         if rope is not None:
             q = RotaryEmbedding2D.apply(q, *rope)
             k = RotaryEmbedding2D.apply(k, *rope)
-        out = F.scaled_dot_product_attention(q, k, v)
-        return self.proj(out.transpose(1, 2).reshape(b, n, c))
+        merge = lambda t: t.transpose(1, 2).reshape(b, n, c)  # noqa: E731
+        return self.proj(attention(merge(q), merge(k), merge(v), self.heads, self.head_dim))
 
 
 class LayerScale(nn.Module):

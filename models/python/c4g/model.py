@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .aggregator import Aggregator
+from .attention import attention
 from .config import C4GConfig
 from .decoder import FeatureDecoder, GaussianDecoder, SinusoidalTimeEmbedding, activate, to_canonical
 
@@ -91,14 +92,18 @@ class C4G(nn.Module):
         maps = F.pad(feature_maps, (0, d - feature_maps.shape[-1])).reshape(1, -1, d).expand(b, -1, -1)
         f = torch.cat((maps, self.gaussian_tokens[None].expand(b, -1, -1)), dim=1)
         last = len(self.gmae_decoder.layers) - 1
+        heads, head_dim = cfg.decoder_heads, cfg.decoder_head_dim
         for i, ((attn, ff), fl) in enumerate(zip(self.gmae_decoder.layers, fd.layers)):
-            rows = n if i == last else None
-            q, k, v = attn.qkv(x, rows)
-            weights = torch.softmax((q @ k.transpose(-1, -2)) * attn.head_dim**-0.5, dim=-1)
-            keep = slice(-rows, None) if rows else slice(None)
-            x = x[:, keep] + attn.to_out(attn.merge_heads(weights @ v))
+            keep = slice(-n, None) if i == last else slice(None)
+            q, k, v = attn.to_qkv(attn.norm(x)).chunk(3, dim=-1)
+            # One attention call for both streams: the same weights softmax(q k^T) apply to the
+            # Gaussian values and the feature values, concatenated per head.
+            values = torch.cat(
+                (v.reshape(b, -1, heads, 1, head_dim), fl["to_v"](f).reshape(b, -1, heads, 1, head_dim)), dim=3
+            ).reshape(b, -1, heads * 2 * head_dim)
+            out = attention(q[:, keep], k, values, heads, head_dim).reshape(b, -1, heads, 2, head_dim)
+            x = x[:, keep] + attn.to_out(out[:, :, :, 0].reshape(b, -1, heads * head_dim))
             x = x + ff(x)
-            fv = attn.split_heads(fl["to_v"](f))
-            f = f[:, keep] + fl["to_out"](attn.merge_heads(weights @ fv))
+            f = f[:, keep] + fl["to_out"](out[:, :, :, 1].reshape(b, -1, heads * head_dim))
             f = f + fl["ff"](f)
         return fd.head(fd.norm(f))

@@ -1,0 +1,18 @@
+//! `/health`: the process answers. `/ready`: the model has loaded and can serve.
+
+use axum::Json;
+use axum::extract::State;
+use serde_json::{Value, json};
+
+use crate::{ApiError, AppState};
+
+pub async fn health() -> Json<Value> {
+    Json(json!({ "status": "ok" }))
+}
+
+pub async fn ready(State(state): State<AppState>) -> Result<Json<Value>, ApiError> {
+    let engine = state.engine().ok_or(ApiError::NotReady)?;
+    Ok(Json(
+        json!({ "status": "ready", "model": engine.manifest().name }),
+    ))
+}

@@ -1,0 +1,71 @@
+//! `c4g-server`: loads the model package and serves it.
+
+use std::future::IntoFuture;
+use std::process::ExitCode;
+
+use c4g_engine::Engine;
+use c4g_server::config::Config;
+use c4g_server::{AppState, router};
+use clap::Parser;
+use tracing_subscriber::EnvFilter;
+
+#[tokio::main]
+async fn main() -> ExitCode {
+    let config = Config::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")),
+        )
+        .init();
+    match run(config).await {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            tracing::error!("{e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
+    let state = AppState::new();
+    let listener = tokio::net::TcpListener::bind(config.listen).await?;
+    // Printed on stdout so scripts and tests can find a port chosen by the OS.
+    println!("listening on {}", listener.local_addr()?);
+
+    // Loading runs off the async threads: /health answers while the model loads.
+    let loading = {
+        let (state, config) = (state.clone(), config.clone());
+        tokio::task::spawn_blocking(move || -> Result<(), String> {
+            let engine = Engine::load(&config.model, config.engine_options())
+                .map_err(|e| format!("cannot load the model {}: {e}", config.model.display()))?;
+            tracing::info!(model = %engine.manifest().name, "model ready");
+            state.set_engine(engine);
+            Ok(())
+        })
+    };
+    let server = tokio::spawn(
+        axum::serve(listener, router(state))
+            .with_graceful_shutdown(shutdown_signal())
+            .into_future(),
+    );
+    // A model that cannot load ends the process: a server that can never be ready helps nobody.
+    loading.await??;
+    server.await??;
+    Ok(())
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending().await,
+        }
+    };
+    tokio::select! { _ = ctrl_c => {}, _ = terminate => {} }
+    tracing::info!("shutting down");
+}
