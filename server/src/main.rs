@@ -1,6 +1,7 @@
 //! `c4g-server`: loads the model package and serves it.
 
 use std::future::IntoFuture;
+use std::io::IsTerminal;
 use std::process::ExitCode;
 
 use c4g_engine::Engine;
