@@ -40,4 +40,40 @@ pub enum RendererError {
     /// Camera parameters that cannot describe a pinhole camera.
     #[error("invalid camera: {0}")]
     InvalidCamera(String),
+    /// Render options that describe no valid render (near/far, background).
+    #[error("invalid render options: {0}")]
+    InvalidRenderOptions(String),
+    /// A rasterizer's thread pool could not be started.
+    #[error("cannot start the rasterizer's thread pool: {0}")]
+    ThreadPool(String),
+    /// Trajectory parameters that describe no camera path.
+    #[error("invalid trajectory: {0}")]
+    InvalidTrajectory(String),
+    /// Images that cannot be compared (sizes, masks, values).
+    #[error("invalid image: {0}")]
+    InvalidImage(String),
+    /// A scene file that does not follow its format.
+    #[error("{format} file: {reason}")]
+    Format {
+        /// The format ("ply", "splat", "series").
+        format: &'static str,
+        /// What is wrong, with where when known.
+        reason: String,
+    },
+    /// Reading or writing a file failed.
+    #[error("{path}: {message}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The operating system's reason.
+        message: String,
+    },
+    /// No GPU adapter (hardware or software) that the wgpu rasterizer can use, or none matching
+    /// the one asked for.
+    #[error("no usable GPU adapter: {0}")]
+    GpuUnavailable(String),
+    /// The GPU failed a render: device creation, a validation or out-of-memory error, a lost device,
+    /// a buffer that could not be read back, or a scene beyond the device's limits.
+    #[error("GPU rasterizer: {0}")]
+    Gpu(String),
 }

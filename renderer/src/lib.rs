@@ -1,13 +1,29 @@
-//! The scene vocabulary of the C4G service.
+//! The scene vocabulary of the C4G service, and what turns scenes into pixels.
 //!
-//! What a decoded moment of a clip *is* ([`GaussianSet`]) and what looks at it ([`Camera`]).
-//! The engine produces Gaussian sets; the rasterizers (a later addition) consume them together
-//! with cameras. Nothing here knows about models, ONNX or networks.
+//! What a decoded moment of a clip *is* ([`GaussianSet`]), what looks at it ([`Camera`]), how a
+//! camera moves ([`trajectory`]), how scenes are stored ([`formats`]), how they become images
+//! ([`raster`]) and how images are compared ([`metrics`]). Nothing here knows about models, ONNX or
+//! networks.
 
+/// Pinhole cameras: intrinsics, world-to-camera poses, OpenCV axes.
 mod camera;
+/// The crate's one error type.
 mod error;
+/// Files: 3DGS `.ply`, antimatter15 `.splat`, and time series of sets.
+pub mod formats;
+/// Gaussian sets: the canonical layout, columns, optional feature vectors.
 mod gaussians;
+/// Image quality: PSNR and SSIM, optionally masked.
+pub mod metrics;
+/// Rasterizers: the forward model, its constants and the CPU (and, with `gpu`, wgpu) renderers.
+pub mod raster;
+/// Camera paths: interpolation and the orbit, spiral and dolly presets.
+pub mod trajectory;
 
 pub use camera::{Camera, Intrinsics, NormalizedIntrinsics};
 pub use error::RendererError;
 pub use gaussians::{CANONICAL_CHANNELS, FeatureBlock, Gaussian, GaussianSet};
+#[cfg(feature = "gpu")]
+pub use raster::gpu::GpuRasterizer;
+pub use raster::{CpuRasterizer, FeatureImage, Image, Rasterizer, RenderOptions};
+pub use trajectory::Trajectory;

@@ -58,6 +58,60 @@ def quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
     )
 
 
+def project(
+    means: np.ndarray, scales: np.ndarray, rotations_wxyz: np.ndarray, cam: Camera
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera-space centres [N, 3], pixel centres (u, v) [N, 2] and 2D covariances [N, 2, 2] (with
+    the low-pass EPS2D added) of finite Gaussians in front of the camera. No visibility test here."""
+    view = np.asarray(cam.world_to_camera, dtype=np.float64)
+    rot_w, t_w = view[:3, :3], view[:3, 3]
+    p_cam = means @ rot_w.T + t_w
+    x, y, z = p_cam[:, 0], p_cam[:, 1], p_cam[:, 2]
+    tan_x, tan_y = 0.5 * cam.width / cam.fx, 0.5 * cam.height / cam.fy
+    tx = np.clip(x / z, -FOV_CLAMP * tan_x, FOV_CLAMP * tan_x) * z
+    ty = np.clip(y / z, -FOV_CLAMP * tan_y, FOV_CLAMP * tan_y) * z
+    zeros = np.zeros_like(z)
+    jac = np.stack(
+        [
+            np.stack([cam.fx / z, zeros, -cam.fx * tx / z**2], -1),
+            np.stack([zeros, cam.fy / z, -cam.fy * ty / z**2], -1),
+        ],
+        -2,
+    )
+    # Σ2D = M Mᵀ with M = J W R S (2 x 3): positive semi-definite by construction.
+    m = jac @ rot_w @ quat_wxyz_to_matrix(rotations_wxyz) * scales[:, None, :]
+    cov2 = m @ np.swapaxes(m, -1, -2) + EPS2D * np.eye(2)
+    uv = np.stack([cam.fx * x / z + cam.cx, cam.fy * y / z + cam.cy], -1)
+    return p_cam, uv, cov2
+
+
+def conic_of(cov2: np.ndarray) -> np.ndarray:
+    """Inverse of a 2x2 covariance."""
+    det = cov2[0, 0] * cov2[1, 1] - cov2[0, 1] ** 2
+    return np.array([[cov2[1, 1], -cov2[0, 1]], [-cov2[0, 1], cov2[0, 0]]]) / det
+
+
+@dataclass
+class Margins:
+    """How close a render came to the forward model's discontinuities, over every (pixel, Gaussian)
+    pair that was still being composited. A float32 rasterizer can only be held to a tight tolerance
+    against this reference where these are not tiny: the fixture generator rejects scenes where they are.
+
+    - `d2`: min |d² - 9| (the 3-sigma cut), over pairs where the cut is a visible step;
+    - `alpha`: min |ln(opacity · exp(-d²/2) · 255)| (the 1/255 cut), over pairs inside 3 sigma;
+    - `transmittance`: min |ln(T_next / 1e-4)| (the early stop), over pairs that passed both cuts;
+    - `near_far`: min relative distance of a drawn or skipped Gaussian's depth to near and far;
+    - `depth_order`: min relative depth gap between two Gaussians that reach a common pixel (an exact
+      tie is not counted: it is ordered by index on both sides).
+    """
+
+    d2: float = np.inf
+    alpha: float = np.inf
+    transmittance: float = np.inf
+    near_far: float = np.inf
+    depth_order: float = np.inf
+
+
 def render(
     means: np.ndarray,
     scales: np.ndarray,
@@ -67,11 +121,17 @@ def render(
     cam: Camera,
     features: np.ndarray | None = None,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    near: float = NEAR,
+    far: float = FAR,
+    margins: Margins | None = None,
 ) -> dict[str, np.ndarray]:
+    """Renders the Gaussians; fills `margins` (when given) with how close the render came to the
+    model's discontinuities."""
     f64 = lambda a: np.asarray(a, dtype=np.float64)  # noqa: E731
     means, scales, rots, opac, cols = map(f64, (means, scales, rotations_wxyz, opacities, colors))
-    n = means.shape[0]
-    feats = f64(features) if features is not None else np.zeros((n, 0))
+    n = len(opac)
+    means, scales, rots, cols = (a.reshape(n, k) for a, k in ((means, 3), (scales, 3), (rots, 4), (cols, 3)))
+    feats = f64(features).reshape(n, -1) if features is not None else np.zeros((n, 0))
     h, w = cam.height, cam.width
     rgb = np.zeros((h, w, 3))
     feat_img = np.zeros((h, w, feats.shape[1]))
@@ -79,45 +139,47 @@ def render(
     trans = np.ones((h, w))
     done = np.zeros((h, w), dtype=bool)
 
-    view = f64(cam.world_to_camera)
-    rot_w, t_w = view[:3, :3], view[:3, 3]
-    finite = np.all(np.isfinite(np.concatenate([means, scales, rots, opac[:, None], cols, feats], axis=1)), axis=1)
+    params = np.concatenate([means, scales, rots, opac[:, None], cols, feats], axis=1)
+    finite = np.all(np.isfinite(params), axis=1)
     finite &= np.linalg.norm(np.where(np.isfinite(rots), rots, 0), axis=1) > 0
-    p_cam = np.where(finite[:, None], np.nan_to_num(means) @ rot_w.T + t_w, np.nan)
-    z = p_cam[:, 2]
-    visible = finite & (z >= NEAR) & (z <= FAR)
+    safe = lambda a, fill: np.where(finite[:, None], np.nan_to_num(a), fill)  # noqa: E731
+    with np.errstate(all="ignore"):
+        p_cam, uv, cov2 = project(safe(means, 0.0), safe(scales, 0.0), safe(rots, 1.0), cam)
+    z = np.where(finite, p_cam[:, 2], np.nan)
+    visible = finite & (z >= near) & (z <= far)
     order = [i for i in np.lexsort((np.arange(n), z)) if visible[i]]
+    if margins is not None and finite.any():
+        zf = z[finite]
+        margins.near_far = float(min(np.abs(zf - near).min() / near, np.abs(zf - far).min() / far))
 
-    tan_x, tan_y = 0.5 * w / cam.fx, 0.5 * h / cam.fy
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64) + 0.5
+    reach = []
     for i in order:
-        x, y, zc = p_cam[i]
-        tx = np.clip(x / zc, -FOV_CLAMP * tan_x, FOV_CLAMP * tan_x) * zc
-        ty = np.clip(y / zc, -FOV_CLAMP * tan_y, FOV_CLAMP * tan_y) * zc
-        jac = np.array([[cam.fx / zc, 0.0, -cam.fx * tx / zc**2], [0.0, cam.fy / zc, -cam.fy * ty / zc**2]])
-        r = quat_wxyz_to_matrix(rots[i])
-        m = r * scales[i][None, :]
-        cov3 = m @ m.T
-        t_mat = jac @ rot_w
-        cov2 = t_mat @ cov3 @ t_mat.T + EPS2D * np.eye(2)
-        det = cov2[0, 0] * cov2[1, 1] - cov2[0, 1] ** 2
+        det = cov2[i, 0, 0] * cov2[i, 1, 1] - cov2[i, 0, 1] ** 2
         if not det > 0:
             continue
-        conic = np.array([[cov2[1, 1], -cov2[0, 1]], [-cov2[0, 1], cov2[0, 0]]]) / det
-        u, v = cam.fx * x / zc + cam.cx, cam.fy * y / zc + cam.cy
+        conic = conic_of(cov2[i])
+        u, v = uv[i]
         dx, dy = xs - u, ys - v
         d2 = conic[0, 0] * dx * dx + 2 * conic[0, 1] * dx * dy + conic[1, 1] * dy * dy
-        alpha = np.minimum(ALPHA_MAX, opac[i] * np.exp(-0.5 * d2))
-        hit = (d2 <= SIGMA_EXTENT**2) & (alpha >= ALPHA_MIN) & ~done
+        raw = opac[i] * np.exp(-0.5 * d2)
+        alpha = np.minimum(ALPHA_MAX, raw)
+        inside = d2 <= SIGMA_EXTENT**2
+        hit = inside & (alpha >= ALPHA_MIN) & ~done
         next_t = trans * (1 - alpha)
+        if margins is not None:
+            _note_margins(margins, d2, raw, next_t, inside, hit, ~done, opac[i])
+            reach.append((z[i], inside))
         stop = hit & (next_t < T_MIN)
         done |= stop
         hit &= ~stop
         weight = np.where(hit, alpha * trans, 0.0)
         rgb += weight[..., None] * cols[i]
         feat_img += weight[..., None] * feats[i]
-        depth += weight * zc
+        depth += weight * z[i]
         trans = np.where(hit, next_t, trans)
+    if margins is not None:
+        margins.depth_order = _depth_order_margin(reach)
     alpha_img = 1 - trans
     expected = np.where(alpha_img > 0, depth / np.where(alpha_img > 0, alpha_img, 1), 0.0)
     return {
@@ -127,3 +189,33 @@ def render(
         "expected_depth": expected,
         "features": feat_img,
     }
+
+
+def _note_margins(margins, d2, raw, next_t, inside, hit, live, opacity) -> None:
+    with np.errstate(divide="ignore"):
+        # The 3-sigma cut is a step only where the Gaussian is still visible there.
+        if opacity * np.exp(-0.5 * SIGMA_EXTENT**2) >= ALPHA_MIN * 0.5:
+            near_cut = live & (np.abs(d2 - SIGMA_EXTENT**2) < 1.0)
+            if near_cut.any():
+                margins.d2 = min(margins.d2, float(np.abs(d2 - SIGMA_EXTENT**2)[near_cut].min()))
+        cand = live & inside
+        if cand.any():
+            margins.alpha = min(margins.alpha, float(np.abs(np.log(raw[cand] / ALPHA_MIN)).min()))
+        if hit.any():
+            margins.transmittance = min(margins.transmittance, float(np.abs(np.log(next_t[hit] / T_MIN)).min()))
+
+
+def _depth_order_margin(reach: list[tuple[float, np.ndarray]], window: float = 1e-3) -> float:
+    """Smallest relative depth gap between overlapping Gaussians; gaps of `window` and more are not
+    examined (the result is then `window`). `reach` is in depth order."""
+    best = window
+    for a in range(len(reach)):
+        za, ma = reach[a]
+        for b in range(a + 1, len(reach)):
+            zb, mb = reach[b]
+            gap = abs(zb - za) / max(abs(za), abs(zb))
+            if gap >= best:
+                break
+            if gap > 0 and (ma & mb).any():
+                best = gap
+    return best

@@ -3,8 +3,10 @@
 //! Every rasterizer implements the same forward model (3D Gaussian splatting with the constants
 //! below, the 3DGS / gsplat convention of C4G_MODEL.md), so they are interchangeable and each
 //! is a check on the others:
-//! - a Gaussian is skipped when any parameter is non-finite, its rotation has zero norm, or its
-//!   camera-space depth z lies outside `[near, far]`;
+//! - a Gaussian is skipped when any parameter is non-finite (its feature vector included, when the
+//!   set has one, whether or not features are rendered), its rotation has zero norm, or its
+//!   camera-space depth z lies outside `[near, far]`; rotations need not be unit (they are
+//!   normalised), scales may be zero;
 //! - EWA projection: `J = [[fx/z, 0, -fx·x/z²], [0, fy/z, -fy·y/z²]]` with x/z and y/z clamped to
 //!   ±[`FOV_CLAMP`] × the half-FOV tangent (`W / 2fx`, `H / 2fy`); `Σ2D = J W Σ Wᵀ Jᵀ + EPS2D·I`,
 //!   `W` the rotation of the world-to-camera pose, `Σ = R S Sᵀ Rᵀ`;
@@ -20,6 +22,12 @@
 //!   feature channels composited like colour (no background).
 //!
 //! The float64 reference of the same model is `models/python/c4g/raster_reference.py`.
+
+mod cpu;
+#[cfg(feature = "gpu")]
+pub mod gpu;
+
+pub use cpu::{CpuRasterizer, PAIR_BUDGET, TILE};
 
 use crate::{Camera, GaussianSet, RendererError};
 
@@ -52,6 +60,29 @@ pub struct RenderOptions {
     pub far: f32,
     /// Composite the set's per-Gaussian feature vectors into a feature image (when it has them).
     pub features: bool,
+}
+
+impl RenderOptions {
+    /// Checks that these describe a render: `0 < near < far`, both finite, a finite background.
+    pub fn validate(&self) -> Result<(), RendererError> {
+        if !(self.near.is_finite()
+            && self.far.is_finite()
+            && 0.0 < self.near
+            && self.near < self.far)
+        {
+            return Err(RendererError::InvalidRenderOptions(format!(
+                "near {} and far {} must be finite with 0 < near < far",
+                self.near, self.far
+            )));
+        }
+        if !self.background.iter().all(|v| v.is_finite()) {
+            return Err(RendererError::InvalidRenderOptions(format!(
+                "background {:?} must be finite",
+                self.background
+            )));
+        }
+        Ok(())
+    }
 }
 
 impl Default for RenderOptions {

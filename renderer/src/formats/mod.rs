@@ -1,0 +1,34 @@
+//! Gaussian sets on disk, in the formats other tools read.
+//!
+//! - [`ply`]: the 3D Gaussian splatting `.ply` (what trainers and most viewers exchange), read in
+//!   any of its variations, written in the common binary layout, optionally with feature columns;
+//! - [`splat`]: antimatter15's compact `.splat` (32 bytes a Gaussian), for web viewers;
+//! - [`series`]: a time series of Gaussian sets: a directory of `.ply` files and a JSON index.
+//!
+//! Every reader fails with a [`RendererError::Format`](crate::RendererError::Format) that says
+//! what is wrong and where, never with a panic, whatever the bytes.
+
+pub mod ply;
+pub mod series;
+pub mod splat;
+
+use std::path::Path;
+
+use crate::RendererError;
+
+/// Reads a whole file, with the path in the error.
+fn read_file(path: &Path) -> Result<Vec<u8>, RendererError> {
+    std::fs::read(path).map_err(|e| io_error(path, e))
+}
+
+/// Writes a whole file, with the path in the error.
+fn write_file(path: &Path, bytes: &[u8]) -> Result<(), RendererError> {
+    std::fs::write(path, bytes).map_err(|e| io_error(path, e))
+}
+
+fn io_error(path: &Path, e: std::io::Error) -> RendererError {
+    RendererError::Io {
+        path: path.display().to_string(),
+        message: e.to_string(),
+    }
+}
