@@ -17,14 +17,7 @@ fn check(name: &str) {
         .unwrap();
     let d = compare(&got, &scene.expected);
     println!("{name}: {d:?}");
-    assert!(d.rgb_max_abs <= 2e-3, "{name}: {d:?}");
-    assert!(d.alpha_max_abs <= 2e-3, "{name}: {d:?}");
-    assert!(d.features_max_abs <= 2e-3, "{name}: {d:?}");
-    assert!(d.depth_max_rel_where_alpha_gt_half <= 1e-3, "{name}: {d:?}");
-    assert!(
-        d.expected_depth_max_rel_where_alpha_gt_half <= 1e-3,
-        "{name}: {d:?}"
-    );
+    d.assert_within_reference_tolerance(name);
 }
 
 #[test]

@@ -38,6 +38,22 @@ pub struct Diff {
     pub features_max_abs: f32,
 }
 
+impl Diff {
+    /// The tolerance every rasterizer is held to against the float64 reference: RGB, alpha and
+    /// features within 2e-3 absolute, depths within 1e-3 relative where alpha > 0.5.
+    pub fn assert_within_reference_tolerance(&self, name: &str) {
+        let d = self;
+        assert!(d.rgb_max_abs <= 2e-3, "{name}: {d:?}");
+        assert!(d.alpha_max_abs <= 2e-3, "{name}: {d:?}");
+        assert!(d.features_max_abs <= 2e-3, "{name}: {d:?}");
+        assert!(d.depth_max_rel_where_alpha_gt_half <= 1e-3, "{name}: {d:?}");
+        assert!(
+            d.expected_depth_max_rel_where_alpha_gt_half <= 1e-3,
+            "{name}: {d:?}"
+        );
+    }
+}
+
 pub fn workspace() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
 }
