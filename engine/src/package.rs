@@ -98,6 +98,9 @@ pub struct Manifest {
     /// Every size of the network, as the PyTorch mirror's config; kept verbatim.
     #[serde(default)]
     pub architecture: serde_json::Value,
+    /// How the weights were trained (recipe, data, seeds) when the package records it; kept verbatim.
+    #[serde(default)]
+    pub training: serde_json::Value,
 }
 
 impl Manifest {

@@ -101,7 +101,14 @@ def _export_graph(module: nn.Module, args: tuple, path: Path, inputs: dict[str, 
 
 
 def export_package(
-    model: C4G, out: Path, name: str, version: str, provenance: dict, description: str = "", fused_attention: bool = True
+    model: C4G,
+    out: Path,
+    name: str,
+    version: str,
+    provenance: dict,
+    description: str = "",
+    fused_attention: bool = True,
+    training: dict | None = None,
 ) -> dict:
     """Write the package for `model` into `out` and return its manifest.
 
@@ -166,6 +173,8 @@ def export_package(
     }
     if model.feature_decoder is not None:
         manifest["feature_decoder"] = {"feature_width": cfg.feature_dim}
+    if training is not None:
+        manifest["training"] = training
     (out / "model.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
 
@@ -200,6 +209,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--name", default=None)
     ap.add_argument("--version", default="0.1.0")
+    ap.add_argument("--description", default="")
+    ap.add_argument("--recipe", type=Path, help="training recipe (JSON, from python -m c4g.train) to record in model.json")
     ap.add_argument(
         "--attention",
         choices=["fused", "plain"],
@@ -220,7 +231,10 @@ def main(argv: list[str] | None = None) -> int:
     else:
         provenance = {"kind": "random-init", "seed": args.seed}
     name = args.name or args.out.name
-    manifest = export_package(model, args.out, name, args.version, provenance, fused_attention=args.attention == "fused")
+    training = json.loads(args.recipe.read_text()) if args.recipe else None
+    manifest = export_package(
+        model, args.out, name, args.version, provenance, args.description, fused_attention=args.attention == "fused", training=training
+    )
     print(f"wrote {args.out} ({manifest['parameters']:,} parameters; files: {', '.join(manifest['files'].values())})")
     return 0
 

@@ -13,7 +13,9 @@ pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ApiError
         "models": [{
             "name": m.name,
             "version": m.version,
+            "description": m.description,
             "provenance": m.provenance,
+            "training": m.training,
             "input": { "width": m.input.width, "height": m.input.height },
             "gaussians_per_set": m.gaussian_count,
             "feature_lifting": m.feature_decoder_width(),

@@ -1,0 +1,136 @@
+"""Rendered splits of the procedural scenes, and the training samples cut from them.
+
+    python -m c4g.dataset --split train --count 2400 --out data/synthetic
+    python -m c4g.dataset --split validation --count 64 --out data/synthetic
+
+Each split is one `<split>.npz`: for C clips of `synthetic.FRAMES` frames at `synthetic.SIZE`,
+frames uint8 [C, F, H, W, 3], expected depth float16 [C, F, H, W] (world units), dynamic masks
+bool [C, F, H, W], world-to-camera poses float64 [C, F, 4, 4], media times float64 [C, F] and the
+scene seeds [C]. Clip i of a split is the scene of seed `SPLITS[split][i]`, so a split is a pure
+function of its name and count.
+
+A training sample is a window of 2T - 1 consecutive frames: the even ones are the context (stride 2,
+as in the paper), the odd ones the targets between them. Cameras and depths are expressed in the
+model's frame (`synthetic.normalise_to_first_camera`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+
+from .synthetic import FPS, FRAMES, SPLITS, make_scene, normalise_to_first_camera, render_clip
+
+SIZE = 64
+
+
+def _one_thread() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _render(seed: int) -> tuple:
+    clip = render_clip(make_scene(seed), np.arange(FRAMES) / FPS, SIZE)
+    frames = np.round(clip.frames * 255).astype(np.uint8)
+    return frames, clip.depth.astype(np.float16), clip.dynamic_mask, clip.world_to_camera, clip.times
+
+
+def generate(split: str, count: int, out: Path, processes: int = 2) -> Path:
+    seeds = list(SPLITS[split][:count])
+    if processes > 1:
+        # Spawned, not forked: a fork would inherit the parent's torch and Numba thread pools.
+        with get_context("spawn").Pool(processes, initializer=_one_thread) as pool:
+            rows = pool.map(_render, seeds, chunksize=8)
+    else:
+        rows = [_render(s) for s in seeds]
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{split}.npz"
+    np.savez(
+        path,
+        frames=np.stack([r[0] for r in rows]),
+        depth=np.stack([r[1] for r in rows]),
+        dynamic=np.stack([r[2] for r in rows]),
+        world_to_camera=np.stack([r[3] for r in rows]),
+        times=np.stack([r[4] for r in rows]),
+        seeds=np.asarray(seeds, dtype=np.int64),
+    )
+    return path
+
+
+@dataclass
+class Split:
+    frames: np.ndarray
+    depth: np.ndarray
+    dynamic: np.ndarray
+    world_to_camera: np.ndarray
+    times: np.ndarray
+    seeds: np.ndarray
+
+    @classmethod
+    def load(cls, path: Path) -> "Split":
+        with np.load(path) as z:
+            return cls(**{k: z[k] for k in ("frames", "depth", "dynamic", "world_to_camera", "times", "seeds")})
+
+    def __len__(self) -> int:
+        return len(self.seeds)
+
+
+@dataclass
+class Sample:
+    """One clip window in the model's frame. `context` and `targets` index into the window."""
+
+    frames: np.ndarray  # [2T-1, H, W, 3] float32 in [0, 1]
+    depth: np.ndarray  # [2T-1, H, W] model units
+    dynamic: np.ndarray  # [2T-1, H, W] bool
+    world_to_camera: np.ndarray  # [2T-1, 4, 4] model frame
+    times: np.ndarray  # [2T-1] media seconds
+    context: np.ndarray
+    targets: np.ndarray
+    scale: float  # model units per world unit
+
+
+def window(split: Split, clip: int, start: int, context_frames: int) -> Sample:
+    idx = start + np.arange(2 * context_frames - 1)
+    depth = split.depth[clip, idx].astype(np.float32)
+    first = depth[0]
+    w2c, scale = normalise_to_first_camera(
+        split.world_to_camera[clip, idx], 0, len(idx) - 1, float(np.median(first[first > 0])) if (first > 0).any() else 1.0
+    )
+    return Sample(
+        split.frames[clip, idx].astype(np.float32) / 255.0,
+        depth * scale,
+        split.dynamic[clip, idx],
+        w2c,
+        split.times[clip, idx],
+        np.arange(0, len(idx), 2),
+        np.arange(1, len(idx), 2),
+        scale,
+    )
+
+
+def random_windows(split: Split, rng: np.random.Generator, batch: int, context_frames: int) -> list[Sample]:
+    clips = rng.integers(0, len(split), batch)
+    span = 2 * context_frames - 1
+    return [window(split, int(c), int(rng.integers(0, FRAMES - span + 1)), context_frames) for c in clips]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m c4g.dataset", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--split", choices=list(SPLITS), required=True)
+    ap.add_argument("--count", type=int, required=True)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--processes", type=int, default=2)
+    args = ap.parse_args(argv)
+    path = generate(args.split, args.count, args.out, args.processes)
+    print(f"wrote {path} ({args.count} clips)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

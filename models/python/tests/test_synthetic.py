@@ -1,0 +1,97 @@
+"""The procedural scene generator and the samples cut from it: determinism, disjoint splits, the
+model-frame normalisation (both rules), and ground truth that agrees with the frames."""
+
+import numpy as np
+import pytest
+
+from c4g.dataset import Split, generate, window
+from c4g.synthetic import FPS, SPLITS, STATIC_MEDIAN_DEPTH, make_scene, normalise_to_first_camera, render_clip
+
+
+def test_same_seed_same_scene_and_different_seeds_differ():
+    a, b, c = make_scene(7), make_scene(7), make_scene(8)
+    for t in (0.0, 0.35, 1.0):
+        np.testing.assert_array_equal(a.gaussians(t).means, b.gaussians(t).means)
+        np.testing.assert_array_equal(a.camera(t), b.camera(t))
+    assert a.gaussians(0.0).means.shape != c.gaussians(0.0).means.shape or not np.allclose(a.gaussians(0.0).means, c.gaussians(0.0).means)
+
+
+def test_splits_are_disjoint_seed_ranges():
+    ranges = sorted(SPLITS.values(), key=lambda r: r.start)
+    for lo, hi in zip(ranges, ranges[1:]):
+        assert lo.stop <= hi.start
+
+
+def test_objects_move_and_the_background_does_not():
+    scene = make_scene(3)
+    moving = scene.dynamic_flags()
+    g0, g1 = scene.gaussians(0.0), scene.gaussians(0.5)
+    assert 1 <= len(scene.objects) <= 4
+    np.testing.assert_array_equal(g0.means[~moving], g1.means[~moving])
+    assert np.abs(g0.means[moving] - g1.means[moving]).max() > 1e-3
+
+
+def _random_poses(rng, n, baseline):
+    poses = []
+    for i in range(n):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        w, x, y, z = q
+        rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])  # fmt: skip
+        p = np.eye(4)
+        p[:3, :3], p[:3, 3] = rot, rng.normal(size=3) * baseline
+        poses.append(p)
+    return np.stack(poses)
+
+
+@pytest.mark.parametrize("baseline", [0.7, 0.0])
+def test_normalisation_puts_the_first_camera_at_the_origin_and_keeps_every_projection(baseline):
+    rng = np.random.default_rng(0)
+    poses = _random_poses(rng, 5, baseline)
+    if baseline == 0.0:
+        poses[:, :3, 3] = 0.0
+        poses[:, :3, :3] = poses[0, :3, :3]  # a static camera: one pose throughout
+    out, scale = normalise_to_first_camera(poses, 0, 4, median_depth_first=3.0)
+    np.testing.assert_allclose(out[0], np.eye(4), atol=1e-12)
+    centres = -np.einsum("tji,tj->ti", out[:, :3, :3], out[:, :3, 3])
+    if baseline:
+        assert np.linalg.norm(centres[4] - centres[0]) == pytest.approx(1.0)
+    else:
+        assert scale == pytest.approx(STATIC_MEDIAN_DEPTH / 3.0)
+    # A world point seen by every camera keeps its image direction: the frame is only rebased and scaled.
+    point = rng.normal(size=3)
+    point_new = (poses[0][:3, :3] @ point + poses[0][:3, 3]) * scale  # in the first camera's frame, new units
+    for old, new in zip(poses, out):
+        a = old[:3, :3] @ point + old[:3, 3]
+        b = new[:3, :3] @ point_new + new[:3, 3]
+        np.testing.assert_allclose(b, a * scale, atol=1e-9)
+
+
+def test_rendered_ground_truth_agrees_with_the_frames():
+    scene = make_scene(11)
+    clip = render_clip(scene, np.arange(3) / FPS, 32)
+    assert clip.frames.shape == (3, 32, 32, 3) and clip.frames.min() >= 0 and clip.frames.max() <= 1
+    assert (clip.alpha > 0.9).mean() > 0.95, "the room surrounds the camera: nearly every pixel is covered"
+    assert (clip.depth[clip.alpha > 0.5] > 0).all()
+    assert clip.dynamic_mask.any() or not clip.tracks_visible.any()
+    # Visible tracked points project inside the image, onto pixels that moving objects cover.
+    vis = clip.tracks_visible
+    uv = clip.tracks_2d[vis]
+    assert ((uv >= 0) & (uv < 32)).all()
+    t_idx = np.nonzero(vis)[0]
+    px = uv.astype(int)
+    near_mask = [clip.dynamic_mask[t, max(0, y - 1) : y + 2, max(0, x - 1) : x + 2].any() for t, (x, y) in zip(t_idx, px)]
+    assert np.mean(near_mask) > 0.9
+
+
+def test_a_split_is_a_function_of_its_name_and_windows_are_in_the_model_frame(tmp_path):
+    a = Split.load(generate("validation", 2, tmp_path / "a", processes=1))
+    b = Split.load(generate("validation", 2, tmp_path / "b", processes=1))
+    np.testing.assert_array_equal(a.frames, b.frames)
+    assert list(a.seeds) == list(SPLITS["validation"][:2])
+    s = window(a, 0, 2, 3)
+    assert list(s.context) == [0, 2, 4] and list(s.targets) == [1, 3]
+    np.testing.assert_allclose(s.world_to_camera[0], np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(s.times, np.arange(2, 7) / FPS)
