@@ -25,6 +25,7 @@ import argparse
 import json
 import math
 import sys
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +40,7 @@ from .model import C4G
 from .raster_fast import render_batch
 from .synthetic import FPS, FRAMES, SPLITS, _axis_angle, make_scene, normalise_to_first_camera, render_clip
 from .time_policy import normalise_batch
-from .train import INTRINSICS_NORMALISED, to_gaussians
+from .train import INTRINSICS_NORMALISED, split_canonical
 
 NOVEL_OFFSET = np.array([0.15, -0.05, 0.1])
 NOVEL_YAW = math.radians(6.0)
@@ -60,9 +61,8 @@ def novel_pose(w2c_model: np.ndarray) -> np.ndarray:
 
 def render_gaussians(gaussians: torch.Tensor, poses: np.ndarray, size: int) -> np.ndarray:
     """Canonical Gaussians [B, N, 14] at poses [B, 4, 4] → rgb [B, H, W, 3] in [0, 1]."""
-    g = gaussians.double()
     f = INTRINSICS_NORMALISED * size
-    out = render_batch(g[..., 0:3], g[..., 3:6], g[..., 6:10], g[..., 10], g[..., 11:14], (f, f, size / 2, size / 2), torch.from_numpy(poses), size, size)
+    out = render_batch(*split_canonical(gaussians.double()), (f, f, size / 2, size / 2), torch.from_numpy(poses), size, size)
     return out["rgb"].clamp(0, 1).numpy()
 
 
@@ -124,6 +124,20 @@ def evaluate_clip(model: C4G, seed: int, context_frames: int) -> dict:
         "novel_gt": novel_gt,
         "novel_model": novel_model,
     }
+
+
+_WORKER_MODEL: C4G | None = None
+
+
+def _load_worker(checkpoint: Path, config: dict) -> None:
+    global _WORKER_MODEL
+    torch.set_num_threads(1)
+    _WORKER_MODEL = load_checkpoint(checkpoint, C4GConfig.from_dict(config)).eval()
+
+
+def _evaluate_in_worker(job: tuple[int, int]) -> dict:
+    assert _WORKER_MODEL is not None
+    return evaluate_clip(_WORKER_MODEL, *job)
 
 
 def summarise(results: list[dict]) -> dict:
@@ -196,16 +210,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--clips", type=int, default=64)
     ap.add_argument("--context-frames", type=int, nargs="+", default=[4, 6])
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--processes", type=int, default=2)
     args = ap.parse_args(argv)
-    torch.set_num_threads(2)
-    cfg = C4GConfig.from_dict(json.loads(args.config.read_text()))
-    model = load_checkpoint(args.checkpoint, cfg).eval()
+    config = json.loads(args.config.read_text())
     seeds = list(SPLITS["test"][: args.clips])
     report = {"clips": len(seeds), "test_seeds": [seeds[0], seeds[-1]], "size": SIZE, "by_context_frames": {}}
     for t in args.context_frames:
         if 2 * t - 1 > FRAMES:
             raise SystemExit(f"--context-frames {t} needs {2 * t - 1} frames; clips have {FRAMES}")
-        results = [evaluate_clip(model, s, t) for s in seeds]
+        # Spawned workers, one model each: clips are independent, and a fork would inherit thread pools.
+        with get_context("spawn").Pool(args.processes, initializer=_load_worker, initargs=(args.checkpoint, config)) as pool:
+            results = pool.map(_evaluate_in_worker, [(s, t) for s in seeds])
         report["by_context_frames"][str(t)] = summarise(results)
         if t == args.context_frames[0]:
             args.out.mkdir(parents=True, exist_ok=True)

@@ -41,9 +41,11 @@ import torch
 import torch.nn.functional as F
 
 from .config import C4GConfig
+from .decoder import SH_C0, to_canonical
 from .dataset import Sample, Split, random_windows, window
 from .model import C4G
 from .raster_fast import render_batch
+from .synthetic import C4G_FOCAL
 from .time_policy import normalise_batch
 
 TINY = C4GConfig(
@@ -69,7 +71,7 @@ SCALE_GAIN = 100.0
 ATTENTION_SHARPNESS = 3.0
 POSITION_CODE_AMPLITUDE = 5.0
 QUERY_GRID = (2, 4)  # queries per patch, as rows x columns of sub-blocks of the patch
-INTRINSICS_NORMALISED = 0.8767
+INTRINSICS_NORMALISED = C4G_FOCAL  # the renders' intrinsics: C4G's fixed ones, as the data's
 
 
 def head_gain(dtype=torch.float32) -> torch.Tensor:
@@ -121,7 +123,7 @@ def initialise_from_data(model: C4G, split: Split, clips: int = 24) -> None:
 
     With default weights every query attends almost uniformly to all ~800 tokens (logit spread
     ~0.3), mostly to the other queries; every Gaussian gets the scene's mean colour whatever the
-    input, and training sits on that plateau for a long time (observed: an hour of CPU). Instead:
+    input, and training sits on that plateau (observed in several runs of 150-340 steps). Instead:
     1. each patch position's mean encoder feature over some training clips (its position code, the
        content averaged out) becomes the query token of the queries assigned to that patch
        (QUERY_GRID of them), and each decoder layer's key projection starts equal to its query
@@ -172,7 +174,7 @@ def initialise_from_data(model: C4G, split: Split, clips: int = 24) -> None:
             y1, x1 = int(v0[i] + sub_h), int(u0[i] + sub_w)
             u, v = (x0 + x1) / 2, (y0 + y1) / 2
             rgb = img[y0:y1, x0:x1].reshape(-1, 3).mean(0)
-            rows.append(torch.cat((torch.tensor([(u - size / 2) / f * z, (v - size / 2) / f * z, z - 1.0]), (rgb - 0.5) / 0.28209479177387814)))
+            rows.append(torch.cat((torch.tensor([(u - size / 2) / f * z, (v - size / 2) / f * z, z - 1.0]), (rgb - 0.5) / SH_C0)))
         targets.append(torch.stack(rows))
     x = torch.cat(states)
     x = torch.cat((x, torch.ones(len(x), 1)), dim=1)
@@ -213,11 +215,11 @@ def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return s.mean()
 
 
-def to_gaussians(decoded: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
-    """Activated head output → render_batch arguments (means, scales, rotations w-x-y-z, opacity, rgb)."""
-    rot = decoded["rotations_xyzw"]
-    rgb = torch.clamp_min(0.28209479177387814 * decoded["sh_dc"] + 0.5, 0.0)
-    return decoded["means"], decoded["scales"], torch.cat((rot[..., 3:4], rot[..., :3]), -1), decoded["opacities"], rgb
+def split_canonical(gaussians: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Canonical Gaussians [..., 14] (docs/package.md) → render_batch's arguments: means, scales,
+    rotations w-x-y-z, opacities, colours."""
+    g = gaussians
+    return g[..., 0:3], g[..., 3:6], g[..., 6:10], g[..., 10], g[..., 11:14]
 
 
 def predict(model: C4G, sample: Sample, views: np.ndarray, policy: str = "stable") -> tuple[dict[str, torch.Tensor], tuple]:
@@ -230,7 +232,7 @@ def predict(model: C4G, sample: Sample, views: np.ndarray, policy: str = "stable
     size = model.cfg.image_size
     f = INTRINSICS_NORMALISED * size
     poses = torch.from_numpy(sample.world_to_camera[views]).float()
-    gaussians = to_gaussians(decoded)
+    gaussians = split_canonical(to_canonical(decoded))
     return render_batch(*gaussians, (f, f, size / 2, size / 2), poses, size, size), gaussians
 
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from c4g.dataset import Split, generate, window
-from c4g.synthetic import FPS, SPLITS, STATIC_MEDIAN_DEPTH, make_scene, normalise_to_first_camera, render_clip
+from c4g.synthetic import FPS, SPLITS, _axis_angle, STATIC_MEDIAN_DEPTH, make_scene, normalise_to_first_camera, render_clip
 
 
 def test_same_seed_same_scene_and_different_seeds_differ():
@@ -32,18 +32,11 @@ def test_objects_move_and_the_background_does_not():
 
 
 def _random_poses(rng, n, baseline):
-    poses = []
-    for i in range(n):
-        q = rng.normal(size=4)
-        q /= np.linalg.norm(q)
-        w, x, y, z = q
-        rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])  # fmt: skip
-        p = np.eye(4)
-        p[:3, :3], p[:3, 3] = rot, rng.normal(size=3) * baseline
-        poses.append(p)
-    return np.stack(poses)
+    poses = np.repeat(np.eye(4)[None], n, axis=0)
+    for p in poses:
+        p[:3, :3] = _axis_angle(rng.normal(size=3), rng.uniform(0, np.pi))
+        p[:3, 3] = rng.normal(size=3) * baseline
+    return poses
 
 
 @pytest.mark.parametrize("baseline", [0.7, 0.0])
