@@ -3,6 +3,7 @@
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::time::Duration;
 
 use c4g_engine::{EngineOptions, ExecutionProvider, TimePolicy};
 use clap::{Parser, ValueEnum};
@@ -14,8 +15,9 @@ pub struct Config {
     /// Address to listen on (port 0 picks a free port; the chosen address is printed).
     #[arg(long, env = "C4G_LISTEN", default_value = "127.0.0.1:8080")]
     pub listen: SocketAddr,
-    /// The model package directory (model.json + ONNX graphs).
-    #[arg(long, env = "C4G_MODEL", default_value = "models/fixtures/c4g-small")]
+    /// The model package directory (model.json + ONNX graphs). The default, c4g-tiny, is the
+    /// small trained model embedded in the repository (models/c4g-tiny/README.md).
+    #[arg(long, env = "C4G_MODEL", default_value = "models/c4g-tiny")]
     pub model: PathBuf,
     /// ONNX Runtime intra-op threads (0: ONNX Runtime's default, one per core).
     #[arg(long, env = "C4G_INTRA_OP_THREADS", default_value_t = 0)]
@@ -30,6 +32,80 @@ pub struct Config {
     /// How timestamps are normalised before the decoder (docs/time-policy.md).
     #[arg(long, env = "C4G_TIME_POLICY", value_enum, default_value_t = PolicyArg::Stable)]
     pub time_policy: PolicyArg,
+    /// Where clips live on disk (metadata, encoder features, context frames), so that a restart
+    /// serves them without encoding again.
+    #[arg(long, env = "C4G_STORE_DIR", default_value = "c4g-data")]
+    pub store_dir: PathBuf,
+    /// Memory for cached encoder features, in MiB; the least recently used clips are evicted
+    /// (they stay on disk and reload on their next request).
+    #[arg(long, env = "C4G_CACHE_MIB", default_value_t = 1024)]
+    pub cache_mib: u64,
+    /// Context frames per clip when the upload does not ask for a number.
+    #[arg(long, env = "C4G_CONTEXT_FRAMES", default_value_t = 4)]
+    pub context_frames: usize,
+    /// The most context frames an upload may ask for.
+    #[arg(long, env = "C4G_MAX_CONTEXT_FRAMES", default_value_t = 32)]
+    pub max_context_frames: usize,
+    /// Largest request body (an upload), in MiB.
+    #[arg(long, env = "C4G_MAX_BODY_MIB", default_value_t = 512)]
+    pub max_body_mib: u64,
+    /// Most frames a source clip (video or image archive) may have.
+    #[arg(long, env = "C4G_MAX_SOURCE_FRAMES", default_value_t = 20_000)]
+    pub max_source_frames: usize,
+    /// Longest clip, in seconds.
+    #[arg(long, env = "C4G_MAX_DURATION_S", default_value_t = 600.0)]
+    pub max_duration_s: f64,
+    /// Largest frame side, in pixels (uploads and renders).
+    #[arg(long, env = "C4G_MAX_SIDE", default_value_t = 8192)]
+    pub max_side: u32,
+    /// Most pixels one rendered image may have.
+    #[arg(long, env = "C4G_MAX_RENDER_PIXELS", default_value_t = 4096 * 4096)]
+    pub max_render_pixels: u64,
+    /// Smallest frame side of an upload, in pixels.
+    #[arg(long, env = "C4G_MIN_SIDE", default_value_t = 16)]
+    pub min_side: u32,
+    /// Largest total of decompressed bytes an image archive may expand to, in MiB.
+    #[arg(long, env = "C4G_MAX_ARCHIVE_MIB", default_value_t = 2048)]
+    pub max_archive_mib: u64,
+    /// Encodes (intake + encoder) at once; more are refused at once with 429 and Retry-After.
+    #[arg(long, env = "C4G_MAX_CONCURRENT_ENCODES", default_value_t = 2)]
+    pub max_concurrent_encodes: usize,
+    /// Decode and render jobs running at once (0: one per core).
+    #[arg(long, env = "C4G_MAX_CONCURRENT_JOBS", default_value_t = 0)]
+    pub max_concurrent_jobs: usize,
+    /// Decode and render jobs that may wait for a slot; more are refused with 503 and Retry-After.
+    #[arg(long, env = "C4G_MAX_QUEUED_JOBS", default_value_t = 256)]
+    pub max_queued_jobs: usize,
+    /// Time limit for reading media with FFmpeg and for one encode, in seconds.
+    #[arg(long, env = "C4G_INTAKE_TIMEOUT_S", default_value_t = 120)]
+    pub intake_timeout_s: u64,
+    /// Most Gaussian sets one request may decode (times in a decode, frames of a stream or video).
+    #[arg(long, env = "C4G_MAX_TIMES", default_value_t = 4096)]
+    pub max_times: usize,
+    /// Largest gRPC message, in MiB (an upload arrives in chunks below this).
+    #[arg(long, env = "C4G_MAX_GRPC_MESSAGE_MIB", default_value_t = 16)]
+    pub max_grpc_message_mib: usize,
+    /// When set, every /v1 request and gRPC call needs `Authorization: Bearer <key>`.
+    #[arg(long, env = "C4G_API_KEY", hide_env_values = true)]
+    pub api_key: Option<String>,
+    /// The rasterizer: `cpu`, or with the `gpu` build feature `gpu` (wgpu) or `auto` (wgpu on a
+    /// hardware GPU, the CPU rasterizer otherwise: Mesa's software Vulkan is slower than it).
+    #[arg(long, env = "C4G_RENDERER", value_enum, default_value_t = RendererArg::Auto)]
+    pub renderer: RendererArg,
+    /// The FFmpeg binary (ffprobe is looked up beside it, or on PATH).
+    #[arg(long, env = "C4G_FFMPEG", default_value = "ffmpeg")]
+    pub ffmpeg: PathBuf,
+}
+
+/// Which rasterizer renders.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum RendererArg {
+    /// wgpu on a hardware GPU when built with `gpu` and one is present; the CPU otherwise.
+    Auto,
+    /// The tiled CPU rasterizer.
+    Cpu,
+    /// The wgpu rasterizer on whatever adapter `C4G_WGPU_ADAPTER` picks (needs the `gpu` feature).
+    Gpu,
 }
 
 /// [`ExecutionProvider`] as a command-line value.
@@ -50,7 +126,62 @@ pub enum PolicyArg {
     Reference,
 }
 
+/// The limits a request is held to, in the units the code uses.
+#[derive(Debug, Clone)]
+pub struct Limits {
+    /// Default context frames per clip.
+    pub context_frames: usize,
+    /// Most context frames an upload may ask for.
+    pub max_context_frames: usize,
+    /// Largest request body, bytes.
+    pub max_body_bytes: usize,
+    /// Most frames in a source clip.
+    pub max_source_frames: usize,
+    /// Longest clip, seconds.
+    pub max_duration_s: f64,
+    /// Largest frame side, pixels.
+    pub max_side: u32,
+    /// Smallest upload frame side, pixels.
+    pub min_side: u32,
+    /// Most pixels of a rendered image.
+    pub max_render_pixels: u64,
+    /// Largest decompressed archive, bytes.
+    pub max_archive_bytes: u64,
+    /// Time limit for media reading and encoding.
+    pub intake_timeout: Duration,
+    /// Most Gaussian sets per request.
+    pub max_times: usize,
+    /// Largest gRPC message, bytes.
+    pub max_grpc_message_bytes: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Config::parse_from(["c4g-server"]).limits()
+    }
+}
+
 impl Config {
+    /// The request limits these settings ask for.
+    pub fn limits(&self) -> Limits {
+        const MIB: u64 = 1 << 20;
+        Limits {
+            context_frames: self.context_frames.clamp(1, self.max_context_frames.max(1)),
+            max_context_frames: self.max_context_frames.max(1),
+            max_body_bytes: usize::try_from(self.max_body_mib.saturating_mul(MIB))
+                .unwrap_or(usize::MAX),
+            max_source_frames: self.max_source_frames,
+            max_duration_s: self.max_duration_s,
+            max_side: self.max_side,
+            min_side: self.min_side,
+            max_render_pixels: self.max_render_pixels,
+            max_archive_bytes: self.max_archive_mib.saturating_mul(MIB),
+            intake_timeout: Duration::from_secs(self.intake_timeout_s.max(1)),
+            max_times: self.max_times.max(1),
+            max_grpc_message_bytes: self.max_grpc_message_mib.saturating_mul(1 << 20),
+        }
+    }
+
     /// The engine options these settings ask for.
     pub fn engine_options(&self) -> EngineOptions {
         EngineOptions {

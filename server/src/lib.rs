@@ -1,18 +1,34 @@
-//! The c4g service: the network edge over the engine.
+//! The c4g service: the network edge over the engine and the renderer.
 //!
 //! | module | holds |
 //! |---|---|
-//! | [`config`] | every setting, as a CLI flag with a `C4G_*` environment variable |
-//! | `state` | what handlers share: the loaded model |
-//! | `api` | one file per endpoint group: `health` (`/health`, `/ready`), `models` (`/v1/models`) |
-//! | `error` | the one place where errors become HTTP statuses and JSON bodies |
+//! | [`config`] | every setting, as a CLI flag with a `C4G_*` environment variable, and the limits |
+//! | [`intake`] | untrusted uploads (videos via FFmpeg, image archives) to timed context frames |
+//! | [`store`] | the clip store: content-addressed clips on disk, features in an LRU cache |
+//! | [`service`] | upload, decode, render: what both transports call |
+//! | `render` | cameras as clients state them, the rasterizer choice, PNG and MP4 encoding |
+//! | `wire` | Gaussian sets as JSON, packed binary and gRPC messages |
+//! | `api` | the REST routes, one file per endpoint group; `/openapi.json` and `/docs` |
+//! | `grpc` | the gRPC service `c4g.v1.C4G`, health and reflection, on the same port |
+//! | `auth` | API-key checks |
+//! | `metrics` | the Prometheus recorder and per-request metrics |
+//! | `error` | the one place where errors become HTTP and gRPC statuses |
 //!
-//! Handlers translate HTTP into calls on [`c4g_engine`]; what a request means lives there.
+//! Handlers translate requests into calls on [`service::Service`]; what a request means lives
+//! there and in [`c4g_engine`].
 
 mod api;
+mod auth;
 pub mod config;
 mod error;
+mod grpc;
+pub mod intake;
+pub mod metrics;
+mod render;
+pub mod service;
 mod state;
+pub mod store;
+mod wire;
 
 pub use api::router;
 pub use error::ApiError;

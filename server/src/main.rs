@@ -6,6 +6,7 @@ use std::process::ExitCode;
 
 use c4g_engine::Engine;
 use c4g_server::config::Config;
+use c4g_server::service::Service;
 use c4g_server::{AppState, router};
 use clap::Parser;
 use tracing_subscriber::EnvFilter;
@@ -30,7 +31,7 @@ async fn main() -> ExitCode {
 }
 
 async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
-    let state = AppState::new();
+    let state = AppState::new(config.clone(), c4g_server::metrics::install());
     let listener = tokio::net::TcpListener::bind(config.listen).await?;
     // Printed on stdout so scripts and tests can find a port chosen by the OS.
     println!("listening on {}", listener.local_addr()?);
@@ -41,8 +42,8 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
         tokio::task::spawn_blocking(move || -> Result<(), String> {
             let engine = Engine::load(&config.model, config.engine_options())
                 .map_err(|e| format!("cannot load the model {}: {e}", config.model.display()))?;
-            tracing::info!(model = %engine.manifest().name, "model ready");
-            state.set_engine(engine);
+            tracing::info!(model = %engine.manifest().name, "model loaded");
+            state.set_service(Service::new(engine, &config)?);
             Ok(())
         })
     };

@@ -1,29 +1,64 @@
-//! What every handler shares. The engine loads in the background, so `/health` answers at once
-//! and `/ready` tells when the model can serve.
+//! What every handler shares. The model loads in the background, so `/health` answers at once
+//! and `/ready` tells when the service can serve.
 
 use std::sync::{Arc, OnceLock};
 
-use c4g_engine::Engine;
+use metrics_exporter_prometheus::PrometheusHandle;
 
-/// Shared, cheaply cloned state of the service.
-#[derive(Clone, Default)]
+use crate::ApiError;
+use crate::auth::ApiKey;
+use crate::config::Config;
+use crate::service::Service;
+
+/// Shared, cheaply cloned state of the server.
+#[derive(Clone)]
 pub struct AppState {
-    engine: Arc<OnceLock<Engine>>,
+    shared: Arc<Shared>,
+}
+
+struct Shared {
+    service: OnceLock<Arc<Service>>,
+    config: Config,
+    api_key: Option<ApiKey>,
+    metrics: Option<PrometheusHandle>,
 }
 
 impl AppState {
     /// State with no model loaded yet.
-    pub fn new() -> Self {
-        Self::default()
+    pub fn new(config: Config, metrics: Option<PrometheusHandle>) -> Self {
+        let api_key = config.api_key.as_deref().map(ApiKey::new);
+        Self {
+            shared: Arc::new(Shared {
+                service: OnceLock::new(),
+                config,
+                api_key,
+                metrics,
+            }),
+        }
     }
 
-    /// Installs the loaded engine; later calls are ignored.
-    pub fn set_engine(&self, engine: Engine) {
-        let _ = self.engine.set(engine);
+    /// Installs the loaded service; later calls are ignored.
+    pub fn set_service(&self, service: Service) {
+        let _ = self.shared.service.set(Arc::new(service));
     }
 
-    /// The engine, once it has loaded.
-    pub fn engine(&self) -> Option<&Engine> {
-        self.engine.get()
+    /// The service, once the model has loaded.
+    pub fn service(&self) -> Result<&Arc<Service>, ApiError> {
+        self.shared.service.get().ok_or(ApiError::NotReady)
+    }
+
+    /// The settings the server started with.
+    pub fn config(&self) -> &Config {
+        &self.shared.config
+    }
+
+    /// The API key requests must carry, when one is configured.
+    pub fn api_key(&self) -> Option<&ApiKey> {
+        self.shared.api_key.as_ref()
+    }
+
+    /// The Prometheus exposition, when metrics are recorded.
+    pub fn metrics(&self) -> Option<&PrometheusHandle> {
+        self.shared.metrics.as_ref()
     }
 }

@@ -1,4 +1,4 @@
-//! `c4g-server` as a real process on loopback, with the fixture model.
+//! `c4g-server` as a real process on loopback, with the fixture model and with the default one.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use std::io::{BufRead, BufReader, Read, Write};
@@ -19,10 +19,15 @@ impl Drop for Server {
     }
 }
 
-fn start(model: PathBuf) -> Server {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_c4g-server"))
-        .args(["--listen", "127.0.0.1:0", "--model"])
-        .arg(model)
+fn start(model: Option<PathBuf>) -> Server {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_c4g-server"));
+    command.args(["--listen", "127.0.0.1:0"]);
+    match model {
+        Some(model) => command.arg("--model").arg(model),
+        // The quick start runs from the repository root with no flags: the default model.
+        None => command.current_dir(workspace()).env_remove("C4G_MODEL"),
+    };
+    let mut child = command
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
@@ -38,6 +43,10 @@ fn start(model: PathBuf) -> Server {
         .parse()
         .unwrap();
     Server { child, addr }
+}
+
+fn workspace() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
 }
 
 /// (status, body) of a plain HTTP/1.1 GET.
@@ -88,8 +97,7 @@ fn serves_health_readiness_and_the_model_description() {
     if !ort_available() {
         return;
     }
-    let fixture = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../models/fixtures/c4g-small");
-    let server = start(fixture);
+    let server = start(Some(workspace().join("models/fixtures/c4g-small")));
     let (status, body) = get(server.addr, "/health");
     assert_eq!((status, body.contains("ok")), (200, true));
     assert!(wait_ready(server.addr).contains("c4g-small"));
@@ -119,4 +127,18 @@ fn a_model_that_cannot_load_ends_the_process_with_an_error() {
         .unwrap();
     assert!(!status.success());
     assert!(err.contains("/nonexistent/package"), "{err}");
+}
+
+#[test]
+fn without_flags_it_serves_the_trained_default_model() {
+    if !ort_available() {
+        return;
+    }
+    let server = start(None);
+    assert!(wait_ready(server.addr).contains("c4g-tiny"));
+    let (_, body) = get(server.addr, "/v1/models");
+    let models: serde_json::Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(models["models"][0]["name"], "c4g-tiny");
+    assert_eq!(models["models"][0]["gaussians_per_set"], 512);
+    assert_eq!(models["models"][0]["training"]["steps"], 2400);
 }

@@ -11,8 +11,8 @@ pub async fn health() -> Json<Value> {
 }
 
 pub async fn ready(State(state): State<AppState>) -> Result<Json<Value>, ApiError> {
-    let engine = state.engine().ok_or(ApiError::NotReady)?;
+    let service = state.service()?;
     Ok(Json(
-        json!({ "status": "ready", "model": engine.manifest().name }),
+        json!({ "status": "ready", "model": service.engine.manifest().name }),
     ))
 }

@@ -4,22 +4,40 @@ use axum::Json;
 use axum::extract::State;
 use serde_json::{Value, json};
 
+use crate::service::Service;
 use crate::{ApiError, AppState};
 
 pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ApiError> {
-    let engine = state.engine().ok_or(ApiError::NotReady)?;
+    let service = state.service()?;
+    Ok(Json(json!({ "models": [describe(service)] })))
+}
+
+/// The model as `/v1/models` and gRPC `ListModels` describe it.
+pub fn describe(service: &Service) -> Value {
+    let engine = &service.engine;
     let m = engine.manifest();
-    Ok(Json(json!({
-        "models": [{
-            "name": m.name,
-            "version": m.version,
-            "description": m.description,
-            "provenance": m.provenance,
-            "training": m.training,
-            "input": { "width": m.input.width, "height": m.input.height },
-            "gaussians_per_set": m.gaussian_count,
-            "feature_lifting": m.feature_decoder_width(),
-            "time_policy": format!("{:?}", engine.options().time_policy).to_lowercase(),
-        }]
-    })))
+    json!({
+        "name": m.name,
+        "version": m.version,
+        "description": m.description,
+        "provenance": m.provenance,
+        "training": m.training,
+        "input": { "width": m.input.width, "height": m.input.height },
+        "gaussians_per_set": m.gaussian_count,
+        "feature_lifting": m.feature_decoder_width(),
+        "time_policy": format!("{:?}", engine.options().time_policy).to_lowercase(),
+        "renderer": service.renderer.name(),
+        "store_key": service.model_key(),
+        "limits": {
+            "context_frames": service.limits.context_frames,
+            "max_context_frames": service.limits.max_context_frames,
+            "max_body_bytes": service.limits.max_body_bytes,
+            "max_source_frames": service.limits.max_source_frames,
+            "max_duration_s": service.limits.max_duration_s,
+            "max_side": service.limits.max_side,
+            "min_side": service.limits.min_side,
+            "max_render_pixels": service.limits.max_render_pixels,
+            "max_times": service.limits.max_times,
+        },
+    })
 }

@@ -1,0 +1,170 @@
+//! `c4g decode` and `c4g export`: the Gaussians at given times, summarised or written out.
+
+use std::io::IsTerminal as _;
+use std::path::{Path, PathBuf};
+
+use anyhow::bail;
+use c4g_client::{GaussianFormat, GaussianFrame, Precision};
+use indicatif::HumanBytes;
+use serde_json::json;
+
+use super::{Context, emit, emit_json, emit_line, secs, write_file};
+
+/// The formats of `--format`.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum Format {
+    Json,
+    Binary,
+    Ply,
+    Splat,
+}
+
+impl From<Format> for GaussianFormat {
+    fn from(format: Format) -> Self {
+        match format {
+            Format::Json => GaussianFormat::Json,
+            Format::Binary => GaussianFormat::Binary,
+            Format::Ply => GaussianFormat::Ply,
+            Format::Splat => GaussianFormat::Splat,
+        }
+    }
+}
+
+#[derive(Debug, clap::Args)]
+pub struct DecodeArgs {
+    /// The clip id.
+    clip: String,
+    /// A time in seconds, inside the clip's context span; repeat it or give a comma-separated
+    /// list for several.
+    #[arg(
+        long = "t",
+        value_name = "T",
+        required = true,
+        value_delimiter = ',',
+        allow_negative_numbers = true
+    )]
+    times: Vec<f64>,
+    /// The server's format to write (default: from -o's extension, else json). PLY and .splat
+    /// hold one time.
+    #[arg(long, value_enum)]
+    format: Option<Format>,
+    /// Write the server's bytes here.
+    #[arg(short, long)]
+    output: Option<PathBuf>,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct ExportArgs {
+    /// The clip id.
+    clip: String,
+    /// The time in seconds, inside the clip's context span.
+    #[arg(long = "t", value_name = "T", allow_negative_numbers = true)]
+    time: f64,
+    /// The file to write: OUT.ply or OUT.splat (the extension picks the format).
+    #[arg(short, long)]
+    output: PathBuf,
+}
+
+pub async fn run(cx: &Context, args: DecodeArgs) -> anyhow::Result<()> {
+    let explicit = args.format.map(GaussianFormat::from);
+    if let Some(path) = &args.output {
+        let format = explicit
+            .or_else(|| GaussianFormat::from_extension(path))
+            .unwrap_or(GaussianFormat::Json);
+        return fetch_to_file(cx, &args.clip, &args.times, format, path).await;
+    }
+    match explicit {
+        // Without a format, a person gets a summary and a script (`--json`) the server's JSON.
+        None if !cx.json => summarise(cx, &args.clip, &args.times).await,
+        None | Some(GaussianFormat::Json) => {
+            let bytes = cx
+                .client
+                .gaussians_raw(&args.clip, &args.times, GaussianFormat::Json)
+                .await?;
+            emit(&String::from_utf8_lossy(&bytes))?;
+            if !bytes.ends_with(b"\n") {
+                emit("\n")?;
+            }
+            Ok(())
+        }
+        Some(format) => {
+            if std::io::stdout().is_terminal() {
+                bail!("{format} is binary: write it to a file with -o, or pipe stdout");
+            }
+            let bytes = cx
+                .client
+                .gaussians_raw(&args.clip, &args.times, format)
+                .await?;
+            super::emit_bytes(&bytes)
+        }
+    }
+}
+
+pub async fn export(cx: &Context, args: ExportArgs) -> anyhow::Result<()> {
+    let format = match GaussianFormat::from_extension(&args.output) {
+        Some(format @ (GaussianFormat::Ply | GaussianFormat::Splat)) => format,
+        _ => bail!(
+            "cannot tell the format of {} from its extension: use .ply or .splat",
+            args.output.display()
+        ),
+    };
+    fetch_to_file(cx, &args.clip, &[args.time], format, &args.output).await
+}
+
+async fn fetch_to_file(
+    cx: &Context,
+    clip: &str,
+    times: &[f64],
+    format: GaussianFormat,
+    path: &Path,
+) -> anyhow::Result<()> {
+    let bytes = cx.client.gaussians_raw(clip, times, format).await?;
+    write_file(path, &bytes).await?;
+    if cx.json {
+        emit_json(&json!({
+            "path": path,
+            "format": format,
+            "times": times,
+            "bytes": bytes.len(),
+        }))
+    } else {
+        emit_line(format!(
+            "wrote {} ({format}, {} time{}, {})",
+            path.display(),
+            times.len(),
+            if times.len() == 1 { "" } else { "s" },
+            HumanBytes(bytes.len() as u64)
+        ))
+    }
+}
+
+/// One line per time: how many Gaussians, where their means lie, how opaque they are.
+async fn summarise(cx: &Context, clip: &str, times: &[f64]) -> anyhow::Result<()> {
+    let frames = cx.client.gaussians(clip, times, Precision::F32).await?;
+    let text: String = frames.iter().map(|f| frame_summary(f) + "\n").collect();
+    emit(&text)
+}
+
+fn frame_summary(frame: &GaussianFrame) -> String {
+    let set = &frame.gaussians;
+    let mut line = format!("t={}  {} Gaussians", secs(frame.time), set.len());
+    if set.is_empty() {
+        return line;
+    }
+    let mut low = [f32::INFINITY; 3];
+    let mut high = [f32::NEG_INFINITY; 3];
+    for position in set.positions() {
+        for axis in 0..3 {
+            low[axis] = low[axis].min(position[axis]);
+            high[axis] = high[axis].max(position[axis]);
+        }
+    }
+    let opacity = set.opacities().iter().map(|&o| f64::from(o)).sum::<f64>() / set.len() as f64;
+    let point = |p: [f32; 3]| format!("[{:.3}, {:.3}, {:.3}]", p[0], p[1], p[2]);
+    line.push_str(&format!(
+        "  means in {} .. {}  mean opacity {opacity:.3}",
+        point(low),
+        point(high)
+    ));
+    line
+}

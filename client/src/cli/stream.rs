@@ -1,0 +1,98 @@
+//! `c4g stream`: Gaussian sets over a time range, over gRPC, to `.ply` files or one line each.
+
+use std::path::PathBuf;
+
+use anyhow::Context as _;
+use c4g_client::{Precision, Spacing, StreamOptions};
+use futures_util::StreamExt;
+use serde_json::json;
+
+use super::{Context, emit_json, emit_line, secs};
+
+/// The values of `--precision`.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum PrecisionArg {
+    F32,
+    F16,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The clip id.
+    clip: String,
+    /// First time, seconds (default: the context span's start).
+    #[arg(long, allow_negative_numbers = true)]
+    start: Option<f64>,
+    /// Last time, seconds (default: the context span's end).
+    #[arg(long, allow_negative_numbers = true)]
+    end: Option<f64>,
+    /// One set every STEP seconds.
+    #[arg(long, conflicts_with = "fps")]
+    step: Option<f64>,
+    /// FPS sets per second (default: the clip's frame rate).
+    #[arg(long)]
+    fps: Option<f64>,
+    /// Precision on the wire; f16 halves the transfer.
+    #[arg(long, value_enum, default_value = "f32")]
+    precision: PrecisionArg,
+    /// Write one .ply per set into this directory (frame-00000-t0.500.ply, ...).
+    #[arg(short, long, value_name = "DIR")]
+    output: Option<PathBuf>,
+}
+
+pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
+    let spacing = match (args.step, args.fps) {
+        (Some(step), _) => Some(Spacing::Step(step)),
+        (None, Some(fps)) => Some(Spacing::Fps(fps)),
+        (None, None) => None,
+    };
+    let options = StreamOptions {
+        start: args.start,
+        end: args.end,
+        spacing,
+        precision: match args.precision {
+            PrecisionArg::F32 => Precision::F32,
+            PrecisionArg::F16 => Precision::F16,
+        },
+    };
+    if let Some(dir) = &args.output {
+        tokio::fs::create_dir_all(dir)
+            .await
+            .with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let mut frames = cx.client.stream(&args.clip, &options).await?;
+    let mut index = 0usize;
+    while let Some(frame) = frames.next().await {
+        let frame = frame?;
+        let path = match &args.output {
+            Some(dir) => {
+                let path = dir.join(format!("frame-{index:05}-t{}.ply", secs(frame.time)));
+                let (set, file) = (frame.gaussians.clone(), path.clone());
+                // The PLY writer is synchronous; keep it off the runtime's thread.
+                tokio::task::spawn_blocking(move || c4g_renderer::formats::ply::write(&file, &set))
+                    .await??;
+                Some(path)
+            }
+            None => None,
+        };
+        let count = frame.gaussians.len();
+        if cx.json {
+            let mut line = json!({ "t": frame.time, "count": count });
+            if let Some(path) = &path {
+                line["path"] = json!(path);
+            }
+            emit_json(&line)?;
+        } else {
+            match &path {
+                Some(path) => emit_line(format!(
+                    "t={}  {count} Gaussians  {}",
+                    secs(frame.time),
+                    path.display()
+                ))?,
+                None => emit_line(format!("t={}  {count} Gaussians", secs(frame.time)))?,
+            }
+        }
+        index += 1;
+    }
+    Ok(())
+}

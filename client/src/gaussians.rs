@@ -1,0 +1,197 @@
+//! Decoding Gaussians at times (`POST /v1/clips/{id}/gaussians`): parsed into
+//! [`GaussianSet`]s, or the server's bytes in any of its formats.
+
+use std::fmt;
+use std::str::FromStr;
+
+use bytes::Bytes;
+use c4g_renderer::GaussianSet;
+use reqwest::header::ACCEPT;
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+
+use crate::{Client, Error, wire};
+
+/// The Gaussians of a clip at one time.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GaussianFrame {
+    /// Media time, seconds.
+    pub time: f64,
+    /// The scene at that time, in the canonical layout.
+    pub gaussians: GaussianSet,
+}
+
+/// Float width of the values in a Gaussian payload. Half precision halves the bytes on the wire
+/// at about three decimal digits, plenty for viewing; the values arrive here as `f32` either way.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// 32-bit floats.
+    #[default]
+    F32,
+    /// 16-bit (IEEE half) floats.
+    F16,
+}
+
+impl Precision {
+    /// The API's name (`f32`, `f16`).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Precision::F32 => "f32",
+            Precision::F16 => "f16",
+        }
+    }
+
+    /// Bytes per value.
+    pub fn value_bytes(self) -> usize {
+        match self {
+            Precision::F32 => 4,
+            Precision::F16 => 2,
+        }
+    }
+
+    /// The proto enum's value (`PRECISION_F32`, `PRECISION_F16`).
+    pub fn to_proto(self) -> c4g_proto::v1::Precision {
+        match self {
+            Precision::F32 => c4g_proto::v1::Precision::F32,
+            Precision::F16 => c4g_proto::v1::Precision::F16,
+        }
+    }
+}
+
+impl fmt::Display for Precision {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl FromStr for Precision {
+    type Err = Error;
+
+    fn from_str(s: &str) -> Result<Self, Error> {
+        match s {
+            "f32" => Ok(Precision::F32),
+            "f16" => Ok(Precision::F16),
+            other => Err(Error::InvalidInput(format!(
+                "unknown precision {other:?} (f32 or f16)"
+            ))),
+        }
+    }
+}
+
+/// The formats `POST /v1/clips/{id}/gaussians` answers in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum GaussianFormat {
+    /// `{"frames": [{"t", "count", "means", ...}]}`.
+    Json,
+    /// The little-endian `C4GS` layout ([`wire::parse_binary`]).
+    Binary,
+    /// The 3DGS PLY layout; one time only.
+    Ply,
+    /// antimatter15's 32-byte rows; one time only.
+    Splat,
+}
+
+impl GaussianFormat {
+    /// The API's name (`json`, `binary`, `ply`, `splat`).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            GaussianFormat::Json => "json",
+            GaussianFormat::Binary => "binary",
+            GaussianFormat::Ply => "ply",
+            GaussianFormat::Splat => "splat",
+        }
+    }
+
+    /// The media type the server answers with.
+    pub fn content_type(self) -> &'static str {
+        match self {
+            GaussianFormat::Json => "application/json",
+            GaussianFormat::Binary => wire::BINARY_CONTENT_TYPE,
+            GaussianFormat::Ply => "application/x-ply",
+            GaussianFormat::Splat => "application/x-splat",
+        }
+    }
+
+    /// The format a file name's extension names: `.json`, `.ply`, `.splat`, and `.c4gs` or
+    /// `.bin` for binary.
+    pub fn from_extension(path: &std::path::Path) -> Option<Self> {
+        let extension = path.extension()?.to_str()?.to_ascii_lowercase();
+        match extension.as_str() {
+            "json" => Some(GaussianFormat::Json),
+            "c4gs" | "bin" => Some(GaussianFormat::Binary),
+            "ply" => Some(GaussianFormat::Ply),
+            "splat" => Some(GaussianFormat::Splat),
+            _ => None,
+        }
+    }
+}
+
+impl fmt::Display for GaussianFormat {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl FromStr for GaussianFormat {
+    type Err = Error;
+
+    fn from_str(s: &str) -> Result<Self, Error> {
+        match s {
+            "json" => Ok(GaussianFormat::Json),
+            "binary" => Ok(GaussianFormat::Binary),
+            "ply" => Ok(GaussianFormat::Ply),
+            "splat" => Ok(GaussianFormat::Splat),
+            other => Err(Error::InvalidInput(format!(
+                "unknown Gaussian format {other:?} (json, binary, ply or splat)"
+            ))),
+        }
+    }
+}
+
+impl Client {
+    /// The Gaussians of a clip at `times` (seconds, inside the context span), one frame per time
+    /// in the server's order. Fetched in the binary format and parsed, so `f16` halves the
+    /// transfer without changing what the caller gets.
+    pub async fn gaussians(
+        &self,
+        clip_id: &str,
+        times: &[f64],
+        precision: Precision,
+    ) -> Result<Vec<GaussianFrame>, Error> {
+        let bytes = self
+            .decode_request(clip_id, times, GaussianFormat::Binary, precision)
+            .await?;
+        wire::parse_binary(&bytes)
+    }
+
+    /// The server's bytes for the Gaussians at `times`, in `format` (values in `f32`). PLY and
+    /// `.splat` hold one time only.
+    pub async fn gaussians_raw(
+        &self,
+        clip_id: &str,
+        times: &[f64],
+        format: GaussianFormat,
+    ) -> Result<Bytes, Error> {
+        self.decode_request(clip_id, times, format, Precision::F32)
+            .await
+    }
+
+    async fn decode_request(
+        &self,
+        clip_id: &str,
+        times: &[f64],
+        format: GaussianFormat,
+        precision: Precision,
+    ) -> Result<Bytes, Error> {
+        let url = self.url(&["v1", "clips", clip_id, "gaussians"]);
+        let body = json!({"times": times, "format": format, "precision": precision});
+        let request = self
+            .http()
+            .post(url)
+            .header(ACCEPT, format.content_type())
+            .json(&body);
+        Ok(self.send(request).await?.bytes().await?)
+    }
+}

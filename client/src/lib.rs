@@ -1,0 +1,44 @@
+//! The c4g client: a Rust library for the c4g inference service, and (in `main.rs`) the `c4g`
+//! command-line tool built on it.
+//!
+//! One [`Client`] speaks both of the server's protocols on its one port: REST under `/v1` for
+//! requests that answer once (upload, describe, decode, render) and gRPC (`c4g.v1.C4G`, h2c) for
+//! [`Client::stream`], where a server-streaming call carries many Gaussian sets with the
+//! transport's flow control. `docs/api.md` is the contract both sides are written against.
+//!
+//! | module | what |
+//! |---|---|
+//! | [`client`] | [`Client`]: base URL, API key, the REST plumbing and how error answers are read |
+//! | [`error`] | [`Error`]: every failure, with the server's status, `kind` and message kept |
+//! | [`model`] | [`Model`]: the served package (`GET /v1/models`) |
+//! | [`clips`] | [`Clip`]: describe, list and delete clips |
+//! | [`upload`] | [`Client::upload`]: videos, archives and image directories, streamed with progress |
+//! | [`gaussians`] | [`Client::gaussians`] (parsed) and [`Client::gaussians_raw`] (JSON, binary, PLY, .splat) |
+//! | [`wire`] | parsers of the packed Gaussian payloads: the `C4GS` binary format and the proto's arrays |
+//! | [`render`] | [`RenderRequest`] and [`Client::render`]: images, depth, alpha and trajectory videos |
+//! | [`stream`] | [`Client::stream`]: Gaussian sets over a time range, over gRPC |
+//!
+//! Gaussian sets arrive as [`c4g_renderer::GaussianSet`], so they write straight to `.ply` or
+//! `.splat` with [`c4g_renderer::formats`] and render with the renderer's rasterizers.
+
+pub mod client;
+pub mod clips;
+pub mod error;
+pub mod gaussians;
+pub mod model;
+pub mod render;
+pub mod stream;
+pub mod upload;
+pub mod wire;
+
+pub use c4g_renderer::GaussianSet;
+pub use client::Client;
+pub use clips::{Clip, ClipSource};
+pub use error::Error;
+pub use gaussians::{GaussianFormat, GaussianFrame, Precision};
+pub use model::{InputSize, Model};
+pub use render::{
+    CameraSpec, IntrinsicsSpec, RenderFormat, RenderRequest, Rendered, TrajectoryPreset,
+};
+pub use stream::{GaussianStream, Spacing, StreamOptions};
+pub use upload::{UploadOptions, UploadSource, content_type_for};

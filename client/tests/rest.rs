@@ -1,0 +1,279 @@
+//! The REST calls against a fake HTTP server that records one request and answers a canned
+//! response: what the client sends (method, path, query, headers, body) and how it reads the
+//! answer.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::sync::{Arc, Mutex};
+
+use c4g_client::{Client, Precision, RenderRequest, UploadOptions, UploadSource};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpListener;
+use tokio::task::JoinHandle;
+
+/// One request as the fake received it.
+struct Recorded {
+    head: String,
+    body: Vec<u8>,
+}
+
+impl Recorded {
+    fn request_line(&self) -> &str {
+        self.head.lines().next().unwrap()
+    }
+
+    fn header(&self, name: &str) -> Option<String> {
+        self.head.lines().skip(1).find_map(|line| {
+            let (key, value) = line.split_once(':')?;
+            key.eq_ignore_ascii_case(name)
+                .then(|| value.trim().to_owned())
+        })
+    }
+}
+
+/// Serves one request with `status`, `headers` and `body`; resolves to the request.
+async fn fake(
+    status: &'static str,
+    headers: &'static [(&'static str, &'static str)],
+    body: Vec<u8>,
+) -> (Client, JoinHandle<Recorded>) {
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let client = Client::new(&listener.local_addr().unwrap().to_string(), None).unwrap();
+    let handle = tokio::spawn(async move {
+        let (mut socket, _) = listener.accept().await.unwrap();
+        let mut received = Vec::new();
+        let mut buffer = [0u8; 64 * 1024];
+        let head_end = loop {
+            let n = socket.read(&mut buffer).await.unwrap();
+            received.extend_from_slice(&buffer[..n]);
+            if let Some(i) = received.windows(4).position(|w| w == b"\r\n\r\n") {
+                break i + 4;
+            }
+        };
+        let head = String::from_utf8(received[..head_end].to_vec()).unwrap();
+        let mut recorded = Recorded {
+            head,
+            body: received[head_end..].to_vec(),
+        };
+        let length: usize = recorded
+            .header("content-length")
+            .map_or(0, |v| v.parse().unwrap());
+        while recorded.body.len() < length {
+            let n = socket.read(&mut buffer).await.unwrap();
+            recorded.body.extend_from_slice(&buffer[..n]);
+        }
+        let mut response = format!(
+            "HTTP/1.1 {status}\r\ncontent-length: {}\r\nconnection: close\r\n",
+            body.len()
+        );
+        for (name, value) in headers {
+            response.push_str(&format!("{name}: {value}\r\n"));
+        }
+        response.push_str("\r\n");
+        socket.write_all(response.as_bytes()).await.unwrap();
+        socket.write_all(&body).await.unwrap();
+        socket.shutdown().await.unwrap();
+        recorded
+    });
+    (client, handle)
+}
+
+const CLIP: &str = r#"{"id": "3f2a", "model": "c4g-tiny", "state": "ready",
+ "context_times": [0.0, 0.5, 1.0], "span": [0.0, 1.0],
+ "source": {"kind": "video", "frames": 30, "width": 96, "height": 64, "duration": 1.0, "fps": 30.0},
+ "feature_bytes": 4096, "created": true, "options": {"max_frames": 3}}"#;
+
+#[tokio::test]
+async fn a_video_streams_as_the_body_with_its_type_and_the_options_in_the_query() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("clip.webm");
+    let video: Vec<u8> = (0..700_000u32).map(|i| (i % 251) as u8).collect();
+    std::fs::write(&path, &video).unwrap();
+
+    let (client, server) = fake(
+        "201 Created",
+        &[("content-type", "application/json")],
+        CLIP.into(),
+    )
+    .await;
+    let seen = Arc::new(Mutex::new(Vec::new()));
+    let log = seen.clone();
+    let options = UploadOptions {
+        max_frames: Some(3),
+        start: Some(0.25),
+        ..UploadOptions::default()
+    };
+    let clip = client
+        .upload(path.as_path(), &options, move |sent, total| {
+            log.lock().unwrap().push((sent, total))
+        })
+        .await
+        .unwrap();
+    let request = server.await.unwrap();
+
+    assert_eq!(
+        request.request_line(),
+        "POST /v1/clips?max_frames=3&start=0.25 HTTP/1.1"
+    );
+    assert_eq!(request.header("content-type").unwrap(), "video/webm");
+    assert_eq!(request.header("content-length").unwrap(), "700000");
+    assert_eq!(request.body, video);
+    let seen = seen.lock().unwrap();
+    assert_eq!(seen.first(), Some(&(0, 700_000)));
+    assert_eq!(seen.last(), Some(&(700_000, 700_000)));
+    assert!(seen.windows(2).all(|w| w[0].0 <= w[1].0));
+
+    assert_eq!(clip.id, "3f2a");
+    assert_eq!(clip.context_span(), Some((0.0, 1.0)));
+    assert_eq!(clip.source.as_ref().unwrap().frames, Some(30));
+    assert_eq!(clip.created, Some(true));
+    assert!(
+        clip.extra.contains_key("options"),
+        "unknown fields are kept"
+    );
+}
+
+#[tokio::test]
+async fn a_directory_becomes_frame_parts_in_name_order_after_the_options() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, content) in [
+        ("002.png", "second"),
+        ("001.png", "first"),
+        ("notes.txt", "x"),
+    ] {
+        std::fs::write(dir.path().join(name), content).unwrap();
+    }
+    let (client, server) = fake("200 OK", &[], CLIP.replace("true", "false").into()).await;
+    let options = UploadOptions {
+        fps: Some(5.0),
+        ..UploadOptions::default()
+    };
+    let clip = client
+        .upload(
+            UploadSource::Path(dir.path().to_owned()),
+            &options,
+            |_, _| {},
+        )
+        .await
+        .unwrap();
+    let request = server.await.unwrap();
+
+    assert_eq!(request.request_line(), "POST /v1/clips HTTP/1.1");
+    assert!(
+        request
+            .header("content-type")
+            .unwrap()
+            .starts_with("multipart/form-data; boundary=")
+    );
+    let body = String::from_utf8(request.body).unwrap();
+    let fps = body.find("name=\"fps\"").unwrap();
+    let first = body.find("first").unwrap();
+    let second = body.find("second").unwrap();
+    assert!(fps < first && first < second, "{body}");
+    assert_eq!(body.matches("name=\"frame\"").count(), 2);
+    assert!(body.contains("filename=\"001.png\""));
+    assert!(body.contains("image/png"));
+    assert!(!body.contains("notes.txt"));
+    assert_eq!(clip.created, Some(false));
+}
+
+#[tokio::test]
+async fn gaussians_ask_for_the_binary_format_and_parse_it() {
+    let mut payload = b"C4GS".to_vec();
+    payload.extend_from_slice(&1u16.to_le_bytes());
+    payload.extend_from_slice(&[0, 0]);
+    payload.extend_from_slice(&1u32.to_le_bytes());
+    payload.extend_from_slice(&1u32.to_le_bytes());
+    payload.extend_from_slice(&0.5f64.to_le_bytes());
+    let row = [
+        1.0f32, 2.0, 3.0, 0.1, 0.1, 0.1, 1.0, 0.0, 0.0, 0.0, 0.9, 0.2, 0.3, 0.4,
+    ];
+    payload.extend(row.iter().flat_map(|v| v.to_le_bytes()));
+
+    let (client, server) = fake(
+        "200 OK",
+        &[("content-type", "application/x-c4g-gaussians")],
+        payload,
+    )
+    .await;
+    let frames = client
+        .gaussians("3f2a", &[0.5], Precision::F32)
+        .await
+        .unwrap();
+    let request = server.await.unwrap();
+
+    assert_eq!(
+        request.request_line(),
+        "POST /v1/clips/3f2a/gaussians HTTP/1.1"
+    );
+    assert_eq!(
+        request.header("accept").unwrap(),
+        "application/x-c4g-gaussians"
+    );
+    let body: serde_json::Value = serde_json::from_slice(&request.body).unwrap();
+    assert_eq!(
+        body,
+        serde_json::json!({"times": [0.5], "format": "binary", "precision": "f32"})
+    );
+    assert_eq!(frames.len(), 1);
+    assert_eq!(frames[0].time, 0.5);
+    assert_eq!(frames[0].gaussians.to_canonical(), row);
+}
+
+#[tokio::test]
+async fn render_sends_only_the_fields_given_and_reads_the_size_headers() {
+    let (client, server) = fake(
+        "200 OK",
+        &[
+            ("content-type", "application/octet-stream"),
+            ("x-c4g-width", "2"),
+            ("x-c4g-height", "1"),
+        ],
+        vec![0; 8],
+    )
+    .await;
+    let request = RenderRequest {
+        t: Some(0.5),
+        width: Some(2),
+        height: Some(1),
+        format: Some(c4g_client::RenderFormat::Depth),
+        ..RenderRequest::default()
+    };
+    let rendered = client.render("3f2a", &request).await.unwrap();
+    let recorded = server.await.unwrap();
+
+    let body: serde_json::Value = serde_json::from_slice(&recorded.body).unwrap();
+    assert_eq!(
+        body,
+        serde_json::json!({"t": 0.5, "width": 2, "height": 1, "format": "depth"})
+    );
+    assert_eq!((rendered.width, rendered.height), (Some(2), Some(1)));
+    assert_eq!(rendered.content_type, "application/octet-stream");
+    assert_eq!(rendered.data.len(), 8);
+}
+
+#[tokio::test]
+async fn error_bodies_that_are_not_the_apis_still_give_status_and_text() {
+    let (client, server) = fake(
+        "503 Service Unavailable",
+        &[("retry-after", "7")],
+        b"upstream down".to_vec(),
+    )
+    .await;
+    let err = client.clips().await.unwrap_err();
+    server.await.unwrap();
+    match err {
+        c4g_client::Error::Api {
+            status,
+            kind,
+            message,
+            retry_after,
+        } => {
+            assert_eq!(status, 503);
+            assert_eq!(kind, "service_unavailable");
+            assert_eq!(message, "upstream down");
+            assert_eq!(retry_after, Some(7));
+        }
+        other => panic!("expected Api, got {other:?}"),
+    }
+}

@@ -1,0 +1,248 @@
+//! `/v1/clips`: upload (a video, an image archive, or multipart frames), list, describe, delete,
+//! and a clip's context frames.
+
+use axum::Json;
+use axum::body::Body;
+use axum::extract::{FromRequest, Multipart, Path, Request, State};
+use axum::http::{StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use bytes::{Bytes, BytesMut};
+use http_body_util::{BodyExt, LengthLimitError, Limited};
+use serde_json::{Value, json};
+
+use crate::intake::{IntakeOptions, Media, MediaKind};
+use crate::store::ClipRecord;
+use crate::{ApiError, AppState};
+
+/// A clip as the API shows it.
+pub fn clip_json(record: &ClipRecord, created: Option<bool>) -> Value {
+    let (first, last) = record.span();
+    let mut value = json!({
+        "id": record.id,
+        "model": record.model,
+        "state": "ready",
+        "context_times": record.context_times,
+        "span": [first, last],
+        "source": record.source,
+        "options": record.options,
+        "feature_bytes": record.feature_bytes(),
+        "created_at": record.created_at,
+    });
+    if let Some(created) = created {
+        value["created"] = json!(created);
+    }
+    value
+}
+
+pub async fn upload(State(state): State<AppState>, request: Request) -> Result<Response, ApiError> {
+    let service = state.service()?.clone();
+    let limit = service.limits.max_body_bytes;
+    let mut fields = query_pairs(request.uri().query())?;
+    let content_type = request
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    let media = if content_type.starts_with("multipart/form-data") {
+        let multipart = Multipart::from_request(request, &())
+            .await
+            .map_err(|e| ApiError::invalid(format!("not a readable multipart body: {e}")))?;
+        read_multipart(multipart, limit, &mut fields).await?
+    } else {
+        let kind = match content_type.split(';').next().unwrap_or("").trim() {
+            "application/zip" | "application/x-zip-compressed" => Some(MediaKind::Zip),
+            "application/x-tar" => Some(MediaKind::Tar),
+            _ => None,
+        };
+        Media::File {
+            data: read_body(request.into_body(), limit).await?,
+            kind,
+        }
+    };
+    let options = parse_options(&fields)?;
+    let (record, created) = service.upload(media, options).await?;
+    let status = if created {
+        StatusCode::CREATED
+    } else {
+        StatusCode::OK
+    };
+    Ok((status, Json(clip_json(&record, Some(created)))).into_response())
+}
+
+async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
+    match Limited::new(body, limit).collect().await {
+        Ok(collected) => Ok(collected.to_bytes()),
+        Err(e) if e.downcast_ref::<LengthLimitError>().is_some() => Err(too_large(limit)),
+        Err(e) => Err(ApiError::invalid(format!("the upload was cut off: {e}"))),
+    }
+}
+
+fn too_large(limit: usize) -> ApiError {
+    ApiError::TooLarge(format!(
+        "the upload is over {limit} bytes (C4G_MAX_BODY_MIB)"
+    ))
+}
+
+async fn read_multipart(
+    mut multipart: Multipart,
+    limit: usize,
+    fields: &mut Vec<(String, String)>,
+) -> Result<Media, ApiError> {
+    let mut file: Option<Bytes> = None;
+    let mut frames = Vec::new();
+    let mut total = 0usize;
+    let map = |e: axum::extract::multipart::MultipartError| {
+        if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+            too_large(limit)
+        } else {
+            ApiError::invalid(format!(
+                "the multipart body cannot be read: {}",
+                e.body_text()
+            ))
+        }
+    };
+    while let Some(mut field) = multipart.next_field().await.map_err(map)? {
+        let name = field.name().unwrap_or("").to_owned();
+        let mut data = BytesMut::new();
+        while let Some(chunk) = field.chunk().await.map_err(map)? {
+            total += chunk.len();
+            if total > limit {
+                return Err(too_large(limit));
+            }
+            data.extend_from_slice(&chunk);
+        }
+        match name.as_str() {
+            "file" if file.is_none() => file = Some(data.freeze()),
+            "file" => return Err(ApiError::invalid("send one `file` part")),
+            "frame" => frames.push(data.freeze()),
+            option => {
+                let text = String::from_utf8(data.to_vec())
+                    .map_err(|_| ApiError::invalid(format!("the `{option}` field is not text")))?;
+                fields.push((option.to_owned(), text));
+            }
+        }
+    }
+    match (file, frames.is_empty()) {
+        (Some(_), false) => Err(ApiError::invalid(
+            "send either one `file` part or `frame` parts, not both",
+        )),
+        (Some(data), true) => Ok(Media::File { data, kind: None }),
+        (None, false) => Ok(Media::Frames(frames)),
+        (None, true) => Err(ApiError::invalid(
+            "the multipart body has no `file` or `frame` part",
+        )),
+    }
+}
+
+fn query_pairs(query: Option<&str>) -> Result<Vec<(String, String)>, ApiError> {
+    serde_urlencoded_pairs(query.unwrap_or(""))
+}
+
+fn serde_urlencoded_pairs(query: &str) -> Result<Vec<(String, String)>, ApiError> {
+    axum::extract::Query::<Vec<(String, String)>>::try_from_uri(
+        &format!("/?{query}")
+            .parse()
+            .map_err(|_| ApiError::invalid("the query string is malformed"))?,
+    )
+    .map(|q| q.0)
+    .map_err(|e| ApiError::invalid(format!("the query string is malformed: {e}")))
+}
+
+/// Upload options from query or multipart fields, every value checked.
+fn parse_options(fields: &[(String, String)]) -> Result<IntakeOptions, ApiError> {
+    fn number<T: std::str::FromStr>(name: &str, value: &str) -> Result<T, ApiError> {
+        value
+            .trim()
+            .parse()
+            .map_err(|_| ApiError::invalid(format!("`{name}` must be a number, got {value:?}")))
+    }
+    let mut options = IntakeOptions::default();
+    for (name, value) in fields {
+        match name.as_str() {
+            "fps" => options.fps = Some(number(name, value)?),
+            "max_frames" => options.max_frames = Some(number(name, value)?),
+            "stride" => options.stride = Some(number(name, value)?),
+            "start" => options.start = Some(number(name, value)?),
+            "end" => options.end = Some(number(name, value)?),
+            "timestamps" => {
+                let list = value.trim().trim_start_matches('[').trim_end_matches(']');
+                options.timestamps = Some(
+                    list.split(',')
+                        .filter(|s| !s.trim().is_empty())
+                        .map(|s| number(name, s))
+                        .collect::<Result<_, _>>()?,
+                );
+            }
+            other => {
+                return Err(ApiError::invalid(format!(
+                    "unknown upload option `{other}`: use fps, timestamps, max_frames, stride, \
+                     start or end"
+                )));
+            }
+        }
+    }
+    Ok(options)
+}
+
+pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ApiError> {
+    let clips: Vec<Value> = state
+        .service()?
+        .store
+        .list()
+        .iter()
+        .map(|r| clip_json(r, None))
+        .collect();
+    Ok(Json(json!({ "clips": clips })))
+}
+
+pub async fn get(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<Value>, ApiError> {
+    let record = state.service()?.store.get(&id)?;
+    Ok(Json(clip_json(&record, None)))
+}
+
+pub async fn delete(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    state.service()?.store.delete(&id)?;
+    Ok(StatusCode::NO_CONTENT)
+}
+
+pub async fn frame(
+    State(state): State<AppState>,
+    Path((id, index)): Path<(String, usize)>,
+) -> Result<Response, ApiError> {
+    let png = state.service()?.context_frame_png(&id, index)?;
+    Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pairs(list: &[(&str, &str)]) -> Vec<(String, String)> {
+        list.iter()
+            .map(|(a, b)| (a.to_string(), b.to_string()))
+            .collect()
+    }
+
+    #[test]
+    fn options_parse_and_refuse_what_they_do_not_know() {
+        let options = parse_options(&pairs(&[
+            ("fps", "12.5"),
+            ("timestamps", "0,0.5, 1.25"),
+            ("max_frames", "3"),
+        ]))
+        .unwrap();
+        assert_eq!(options.fps, Some(12.5));
+        assert_eq!(options.timestamps, Some(vec![0.0, 0.5, 1.25]));
+        assert_eq!(options.max_frames, Some(3));
+        assert!(parse_options(&pairs(&[("fsp", "3")])).is_err());
+        assert!(parse_options(&pairs(&[("fps", "fast")])).is_err());
+        assert!(serde_urlencoded_pairs("fps=10&start=0.5").unwrap().len() == 2);
+    }
+}

@@ -1,0 +1,93 @@
+//! `POST /v1/clips/{id}/gaussians`: the Gaussians at one or more times, as JSON, the packed
+//! binary format, `.ply` or `.splat`.
+
+use axum::Json;
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, header};
+use axum::response::{IntoResponse, Response};
+use c4g_renderer::formats::{ply, splat};
+use serde::Deserialize;
+
+use super::json::JsonBody;
+use crate::wire::{self, Precision};
+use crate::{ApiError, AppState};
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GaussiansRequest {
+    t: Option<f64>,
+    times: Option<Vec<f64>>,
+    format: Option<GaussianFormat>,
+    #[serde(default)]
+    precision: Precision,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+enum GaussianFormat {
+    Json,
+    Binary,
+    Ply,
+    Splat,
+}
+
+impl GaussianFormat {
+    fn from_accept(headers: &HeaderMap) -> Option<Self> {
+        let accept = headers.get(header::ACCEPT)?.to_str().ok()?;
+        [
+            ("application/x-c4g-gaussians", Self::Binary),
+            ("application/x-ply", Self::Ply),
+            ("application/x-splat", Self::Splat),
+        ]
+        .into_iter()
+        .find(|(mime, _)| accept.contains(mime))
+        .map(|(_, f)| f)
+    }
+}
+
+pub async fn decode(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    JsonBody(request): JsonBody<GaussiansRequest>,
+) -> Result<Response, ApiError> {
+    let service = state.service()?;
+    let times = match (request.t, request.times) {
+        (Some(t), None) => vec![t],
+        (None, Some(times)) => times,
+        (Some(_), Some(_)) => return Err(ApiError::invalid("give \"t\" or \"times\", not both")),
+        (None, None) => {
+            return Err(ApiError::invalid(
+                "give a time: {\"t\": 0.5} or {\"times\": [..]}",
+            ));
+        }
+    };
+    let format = request
+        .format
+        .or_else(|| GaussianFormat::from_accept(&headers))
+        .unwrap_or(GaussianFormat::Json);
+    if matches!(format, GaussianFormat::Ply | GaussianFormat::Splat) && times.len() != 1 {
+        return Err(ApiError::invalid(
+            "ply and splat hold one set: ask for one time (or use json or binary)",
+        ));
+    }
+    let frames = service.decode(&id, times).await?;
+    Ok(match format {
+        GaussianFormat::Json => Json(wire::json(&frames)).into_response(),
+        GaussianFormat::Binary => (
+            [(header::CONTENT_TYPE, "application/x-c4g-gaussians")],
+            wire::binary(&frames, request.precision),
+        )
+            .into_response(),
+        GaussianFormat::Ply => (
+            [(header::CONTENT_TYPE, "application/x-ply")],
+            ply::encode(&frames[0].1),
+        )
+            .into_response(),
+        GaussianFormat::Splat => (
+            [(header::CONTENT_TYPE, "application/x-splat")],
+            splat::encode(&frames[0].1),
+        )
+            .into_response(),
+    })
+}

@@ -1,0 +1,146 @@
+//! `POST /v1/clips/{id}/render`: one camera at one time (PNG, raw depth or alpha), or a camera
+//! trajectory over a time range (MP4).
+
+use axum::extract::{Path, State};
+use axum::http::{HeaderName, HeaderValue, header};
+use axum::response::{IntoResponse, Response};
+use c4g_renderer::Trajectory;
+use serde::Deserialize;
+
+use super::json::JsonBody;
+use crate::render::{CameraSpec, ImageFormat, encode_image, encode_mp4, to_rgb8};
+use crate::service::{PathRequest, ViewRequest};
+use crate::{ApiError, AppState};
+
+/// Frame rate of trajectory videos when a request does not say.
+const DEFAULT_VIDEO_FPS: f64 = 12.0;
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RenderRequest {
+    t: Option<f64>,
+    #[serde(default)]
+    camera: CameraSpec,
+    width: Option<u32>,
+    height: Option<u32>,
+    #[serde(default)]
+    background: [f32; 3],
+    format: Option<ImageFormat>,
+    trajectory: Option<Trajectory>,
+    cameras: Option<Vec<CameraSpec>>,
+    frames: Option<usize>,
+    start: Option<f64>,
+    end: Option<f64>,
+    fps: Option<f64>,
+}
+
+pub async fn render(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    JsonBody(request): JsonBody<RenderRequest>,
+) -> Result<Response, ApiError> {
+    let service = state.service()?.clone();
+    let is_path = request.trajectory.is_some() || request.cameras.is_some();
+    if !is_path {
+        if request.frames.is_some()
+            || request.fps.is_some()
+            || request.start.is_some()
+            || request.end.is_some()
+        {
+            return Err(ApiError::invalid(
+                "frames, fps, start and end describe a trajectory: add \"trajectory\" or \"cameras\"",
+            ));
+        }
+        let format = request.format.unwrap_or(ImageFormat::Png);
+        let record = service.store.get(&id)?;
+        let view = ViewRequest {
+            t: request.t.unwrap_or(record.span().0),
+            camera: request.camera,
+            width: request.width,
+            height: request.height,
+            background: request.background,
+        };
+        let t = view.t;
+        let image = service.render_view(&id, view).await?;
+        let bytes = encode_image(&image, format)?;
+        return Ok(with_headers(
+            format,
+            bytes,
+            image.width,
+            image.height,
+            Some(t),
+        ));
+    }
+    let format = request.format.unwrap_or(ImageFormat::Mp4);
+    if format != ImageFormat::Mp4 {
+        return Err(ApiError::invalid(
+            "a trajectory renders as mp4 over REST (gRPC RenderTrajectory streams PNG frames)",
+        ));
+    }
+    if request.t.is_some() {
+        return Err(ApiError::invalid(
+            "a trajectory spans \"start\" to \"end\"; \"t\" is for a single view",
+        ));
+    }
+    let fps = request.fps.unwrap_or(DEFAULT_VIDEO_FPS);
+    if !(fps.is_finite() && fps > 0.0 && fps <= 240.0) {
+        return Err(ApiError::invalid(format!(
+            "fps must be in (0, 240], got {fps}"
+        )));
+    }
+    let path = PathRequest {
+        preset: request.trajectory,
+        cameras: request.cameras.unwrap_or_default(),
+        camera: request.camera,
+        frames: request.frames,
+        start: request.start,
+        end: request.end,
+        width: request.width,
+        height: request.height,
+        background: request.background,
+    };
+    let record = service.store.get(&id)?;
+    let plan = service.plan_path(&record, &path)?;
+    let encoding = service.store.encoding(&id).await?;
+    let background = path.background;
+    let images = service
+        .job(move |service| service.render_path_now(&encoding, &plan, background))
+        .await?;
+    let (w, h) = images.first().map_or((0, 0), |i| (i.width, i.height));
+    let frames: Vec<Vec<u8>> = images.iter().map(to_rgb8).collect();
+    let video = encode_mp4(
+        &service.tools.ffmpeg,
+        &service.tools.scratch,
+        &frames,
+        w,
+        h,
+        fps,
+    )
+    .await?;
+    Ok(with_headers(format, video, w, h, None))
+}
+
+fn with_headers(
+    format: ImageFormat,
+    bytes: Vec<u8>,
+    width: u32,
+    height: u32,
+    t: Option<f64>,
+) -> Response {
+    let mut response = ([(header::CONTENT_TYPE, format.content_type())], bytes).into_response();
+    let headers = response.headers_mut();
+    headers.insert(
+        HeaderName::from_static("x-c4g-width"),
+        HeaderValue::from(width),
+    );
+    headers.insert(
+        HeaderName::from_static("x-c4g-height"),
+        HeaderValue::from(height),
+    );
+    if let Some(t) = t
+        && let Ok(value) = HeaderValue::from_str(&t.to_string())
+    {
+        headers.insert(HeaderName::from_static("x-c4g-time"), value);
+    }
+    response
+}

@@ -1,0 +1,87 @@
+//! API-key authentication: `Authorization: Bearer <key>` or `x-api-key: <key>`, compared in
+//! constant time (both sides hashed first, so neither the content nor the length of the key
+//! leaks through timing).
+
+use axum::extract::{Request, State};
+use axum::http::HeaderMap;
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+use sha2::{Digest, Sha256};
+use subtle::ConstantTimeEq;
+
+use crate::{ApiError, AppState};
+
+/// The configured key, kept only as its hash.
+#[derive(Clone)]
+pub struct ApiKey {
+    digest: [u8; 32],
+}
+
+impl std::fmt::Debug for ApiKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ApiKey(..)")
+    }
+}
+
+impl ApiKey {
+    /// Wraps the configured key.
+    pub fn new(key: &str) -> Self {
+        Self {
+            digest: Sha256::digest(key.as_bytes()).into(),
+        }
+    }
+
+    /// True when `presented` is the key.
+    pub fn matches(&self, presented: &str) -> bool {
+        let digest: [u8; 32] = Sha256::digest(presented.as_bytes()).into();
+        self.digest.ct_eq(&digest).into()
+    }
+
+    /// True when the headers (HTTP, or gRPC metadata as headers) carry the key.
+    pub fn admits(&self, headers: &HeaderMap) -> bool {
+        let bearer = headers
+            .get("authorization")
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "));
+        let plain = headers.get("x-api-key").and_then(|v| v.to_str().ok());
+        bearer.or(plain).is_some_and(|k| self.matches(k.trim()))
+    }
+}
+
+/// Middleware: refuses requests without the key (when one is configured). gRPC calls get
+/// `UNAUTHENTICATED` in gRPC's own framing.
+pub async fn require_key(State(state): State<AppState>, request: Request, next: Next) -> Response {
+    match state.api_key() {
+        Some(key) if !key.admits(request.headers()) => {
+            metrics::counter!("c4g_rejected_total", "reason" => "unauthorized").increment(1);
+            if crate::grpc::is_grpc(request.headers()) {
+                tonic::Status::from(ApiError::Unauthorized).into_http()
+            } else {
+                ApiError::Unauthorized.into_response()
+            }
+        }
+        _ => next.run(request).await,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_the_exact_key_is_admitted() {
+        let key = ApiKey::new("s3cret");
+        assert!(key.matches("s3cret"));
+        assert!(!key.matches("s3cre"));
+        assert!(!key.matches("s3cret "));
+        assert!(!key.matches(""));
+        let mut headers = HeaderMap::new();
+        headers.insert("authorization", "Bearer s3cret".parse().unwrap());
+        assert!(key.admits(&headers));
+        headers.insert("authorization", "Bearer wrong".parse().unwrap());
+        assert!(!key.admits(&headers));
+        let mut headers = HeaderMap::new();
+        headers.insert("x-api-key", "s3cret".parse().unwrap());
+        assert!(key.admits(&headers));
+    }
+}

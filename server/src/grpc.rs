@@ -1,0 +1,418 @@
+//! The gRPC service `c4g.v1.C4G`: the same operations as the REST API, over HTTP/2 on the same
+//! port, plus `grpc.health.v1` and reflection.
+
+use std::pin::Pin;
+use std::sync::Arc;
+
+use axum::http::HeaderMap;
+use bytes::BytesMut;
+use c4g_proto::v1 as pb;
+use c4g_proto::v1::c4g_server::{C4g, C4gServer};
+use c4g_renderer::Trajectory;
+use tokio::sync::mpsc;
+use tokio_stream::Stream;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Request, Response, Status, Streaming};
+
+use crate::intake::{IntakeOptions, Media, MediaKind};
+use crate::render::{CameraSpec, ImageFormat, IntrinsicsSpec, encode_image};
+use crate::service::{PathRequest, Service, ViewRequest};
+use crate::store::ClipRecord;
+use crate::wire::{self, Precision};
+use crate::{ApiError, AppState};
+
+/// Sets a stream decodes ahead of what the client has taken: the backpressure bound.
+const STREAM_AHEAD: usize = 4;
+
+/// True when a request is a gRPC call.
+pub fn is_grpc(headers: &HeaderMap) -> bool {
+    headers
+        .get("content-type")
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("application/grpc"))
+}
+
+/// The tonic routes: `c4g.v1.C4G`, health and reflection.
+pub fn routes(state: AppState) -> tonic::service::Routes {
+    let limit = state.config().limits().max_grpc_message_bytes;
+    let state_for_health = state.clone();
+    let service = C4gServer::new(Grpc { state })
+        .max_decoding_message_size(limit)
+        .max_encoding_message_size(usize::MAX);
+    let (reporter, health) = tonic_health::server::health_reporter();
+    // `c4g.v1.C4G` reports SERVING once the model has loaded, like `/ready`.
+    tokio::spawn(async move {
+        reporter.set_not_serving::<C4gServer<Grpc>>().await;
+        while state_for_health.service().is_err() {
+            tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+        }
+        reporter.set_serving::<C4gServer<Grpc>>().await;
+    });
+    let mut routes = tonic::service::Routes::new(service).add_service(health);
+    match tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(c4g_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()
+    {
+        Ok(reflection) => routes = routes.add_service(reflection),
+        Err(e) => tracing::warn!("gRPC reflection unavailable: {e}"),
+    }
+    routes
+}
+
+struct Grpc {
+    state: AppState,
+}
+
+impl Grpc {
+    fn service(&self) -> Result<&Arc<Service>, Status> {
+        Ok(self.state.service()?)
+    }
+}
+
+fn clip_proto(record: &ClipRecord, created: bool) -> pb::Clip {
+    pb::Clip {
+        clip_id: record.id.clone(),
+        model: record.model.clone(),
+        context_times: record.context_times.clone(),
+        source_frames: record.source.frames as u32,
+        source_width: record.source.width,
+        source_height: record.source.height,
+        duration: record.source.duration,
+        state: pb::ClipState::Ready as i32,
+        feature_bytes: record.feature_bytes(),
+        source_kind: record.source.kind.clone(),
+        source_fps: record.source.fps,
+        created,
+    }
+}
+
+fn camera_spec(camera: Option<pb::Camera>) -> CameraSpec {
+    let Some(camera) = camera else {
+        return CameraSpec::default();
+    };
+    CameraSpec {
+        world_to_camera: (!camera.world_to_camera.is_empty()).then_some(camera.world_to_camera),
+        intrinsics: camera.intrinsics.map(|i| IntrinsicsSpec {
+            fx: i.fx,
+            fy: i.fy,
+            cx: i.cx,
+            cy: i.cy,
+        }),
+    }
+}
+
+fn background(values: &[f32]) -> Result<[f32; 3], Status> {
+    match values {
+        [] => Ok([0.0; 3]),
+        [r, g, b] => Ok([*r, *g, *b]),
+        other => Err(Status::invalid_argument(format!(
+            "background needs 3 values (RGB), got {}",
+            other.len()
+        ))),
+    }
+}
+
+fn image_format(format: i32) -> Result<ImageFormat, Status> {
+    match pb::ImageFormat::try_from(format) {
+        Ok(pb::ImageFormat::Unspecified | pb::ImageFormat::Png) => Ok(ImageFormat::Png),
+        Ok(pb::ImageFormat::DepthF32) => Ok(ImageFormat::Depth),
+        Ok(pb::ImageFormat::AlphaF32) => Ok(ImageFormat::Alpha),
+        Err(_) => Err(Status::invalid_argument(format!(
+            "unknown image format {format}"
+        ))),
+    }
+}
+
+fn nonzero(v: u32) -> Option<u32> {
+    (v != 0).then_some(v)
+}
+
+type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl C4g for Grpc {
+    async fn upload(
+        &self,
+        request: Request<Streaming<pb::UploadRequest>>,
+    ) -> Result<Response<pb::Clip>, Status> {
+        let service = self.service()?.clone();
+        let mut stream = request.into_inner();
+        let header = match stream.message().await? {
+            Some(pb::UploadRequest {
+                part: Some(pb::upload_request::Part::Header(header)),
+            }) => header,
+            _ => {
+                return Err(Status::invalid_argument(
+                    "the first message of an upload must be its header",
+                ));
+            }
+        };
+        let limit = service.limits.max_body_bytes;
+        let mut data = BytesMut::new();
+        while let Some(message) = stream.message().await? {
+            match message.part {
+                Some(pb::upload_request::Part::Chunk(chunk)) => {
+                    if data.len() + chunk.len() > limit {
+                        return Err(ApiError::TooLarge(format!(
+                            "the upload is over {limit} bytes (C4G_MAX_BODY_MIB)"
+                        ))
+                        .into());
+                    }
+                    data.extend_from_slice(&chunk);
+                }
+                _ => {
+                    return Err(Status::invalid_argument(
+                        "after the header an upload sends only chunks",
+                    ));
+                }
+            }
+        }
+        let kind = match pb::MediaKind::try_from(header.kind) {
+            Ok(pb::MediaKind::Video) => Some(MediaKind::Video),
+            Ok(pb::MediaKind::Zip) => Some(MediaKind::Zip),
+            Ok(pb::MediaKind::Tar) => Some(MediaKind::Tar),
+            _ => None,
+        };
+        let sampling = header.sampling.unwrap_or_default();
+        let options = IntakeOptions {
+            fps: header.fps,
+            timestamps: (!header.timestamps.is_empty()).then_some(header.timestamps),
+            max_frames: sampling.max_frames.map(|n| n as usize),
+            stride: sampling.stride.map(|n| n as usize),
+            start: sampling.start,
+            end: sampling.end,
+        };
+        let media = Media::File {
+            data: data.freeze(),
+            kind,
+        };
+        let (record, created) = service.upload(media, options).await?;
+        Ok(Response::new(clip_proto(&record, created)))
+    }
+
+    async fn get_clip(&self, request: Request<pb::ClipRef>) -> Result<Response<pb::Clip>, Status> {
+        let record = self.service()?.store.get(&request.into_inner().clip_id)?;
+        Ok(Response::new(clip_proto(&record, false)))
+    }
+
+    async fn list_clips(
+        &self,
+        _: Request<pb::ListClipsRequest>,
+    ) -> Result<Response<pb::ListClipsResponse>, Status> {
+        let clips = self.service()?.store.list();
+        Ok(Response::new(pb::ListClipsResponse {
+            clips: clips.iter().map(|r| clip_proto(r, false)).collect(),
+        }))
+    }
+
+    async fn delete_clip(
+        &self,
+        request: Request<pb::ClipRef>,
+    ) -> Result<Response<pb::DeleteClipResponse>, Status> {
+        self.service()?
+            .store
+            .delete(&request.into_inner().clip_id)?;
+        Ok(Response::new(pb::DeleteClipResponse {}))
+    }
+
+    async fn decode(
+        &self,
+        request: Request<pb::DecodeRequest>,
+    ) -> Result<Response<pb::DecodeResponse>, Status> {
+        let request = request.into_inner();
+        let precision = Precision::from(request.precision());
+        let frames = self
+            .service()?
+            .decode(&request.clip_id, request.times)
+            .await?;
+        Ok(Response::new(pb::DecodeResponse {
+            frames: frames
+                .iter()
+                .map(|(t, set)| pb::GaussianFrame {
+                    time: *t,
+                    gaussians: Some(wire::proto(set, precision)),
+                })
+                .collect(),
+        }))
+    }
+
+    type StreamGaussiansStream = BoxStream<pb::GaussianFrame>;
+
+    async fn stream_gaussians(
+        &self,
+        request: Request<pb::StreamGaussiansRequest>,
+    ) -> Result<Response<Self::StreamGaussiansStream>, Status> {
+        let request = request.into_inner();
+        let service = self.service()?.clone();
+        let record = service.store.get(&request.clip_id)?;
+        let (first, last) = record.span();
+        let (start, end) = (request.start.unwrap_or(first), request.end.unwrap_or(last));
+        let step = match request.spacing {
+            Some(pb::stream_gaussians_request::Spacing::Step(step)) => step,
+            Some(pb::stream_gaussians_request::Spacing::Fps(fps)) => 1.0 / fps,
+            None if record.source.fps > 0.0 => 1.0 / record.source.fps,
+            None => 0.1,
+        };
+        if !(step.is_finite() && step > 0.0) {
+            return Err(Status::invalid_argument(format!(
+                "the step between sets must be a positive number of seconds, got {step}"
+            )));
+        }
+        service.check_times(&record, &[start, end])?;
+        if start > end {
+            return Err(Status::invalid_argument(format!(
+                "start {start} is after end {end}"
+            )));
+        }
+        let count = ((end - start) / step + 1e-9).floor() as usize + 1;
+        if count > service.limits.max_times {
+            return Err(ApiError::TooLarge(format!(
+                "{count} sets in one stream; at most {} (C4G_MAX_TIMES): use a larger step",
+                service.limits.max_times
+            ))
+            .into());
+        }
+        let times: Vec<f64> = (0..count)
+            .map(|i| (start + step * i as f64).min(end))
+            .collect();
+        let encoding = service.store.encoding(&record.id).await?;
+        let precision = Precision::from(request.precision());
+        let (tx, rx) = mpsc::channel(STREAM_AHEAD);
+        tokio::spawn(async move {
+            // Decode in the engine's batch size; a send waits while the client is behind.
+            let batch = service
+                .engine
+                .decode_batch_size(encoding.frame_count())
+                .max(1);
+            for chunk in times.chunks(batch) {
+                let chunk = chunk.to_vec();
+                let encoding = encoding.clone();
+                let frames = service
+                    .job(move |service| service.decode_now(&encoding, &chunk))
+                    .await;
+                match frames {
+                    Ok(frames) => {
+                        for (t, set) in frames {
+                            let frame = pb::GaussianFrame {
+                                time: t,
+                                gaussians: Some(wire::proto(&set, precision)),
+                            };
+                            if tx.send(Ok(frame)).await.is_err() {
+                                return; // the client went away
+                            }
+                        }
+                    }
+                    Err(e) => {
+                        let _ = tx.send(Err(e.into())).await;
+                        return;
+                    }
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+
+    async fn render(
+        &self,
+        request: Request<pb::RenderRequest>,
+    ) -> Result<Response<pb::RenderedImage>, Status> {
+        let request = request.into_inner();
+        let format = image_format(request.format)?;
+        let view = ViewRequest {
+            t: request.time,
+            camera: camera_spec(request.camera),
+            width: nonzero(request.width),
+            height: nonzero(request.height),
+            background: background(&request.background)?,
+        };
+        let image = self.service()?.render_view(&request.clip_id, view).await?;
+        Ok(Response::new(pb::RenderedImage {
+            time: request.time,
+            width: image.width,
+            height: image.height,
+            format: request.format,
+            data: encode_image(&image, format)?,
+        }))
+    }
+
+    type RenderTrajectoryStream = BoxStream<pb::RenderedImage>;
+
+    async fn render_trajectory(
+        &self,
+        request: Request<pb::RenderTrajectoryRequest>,
+    ) -> Result<Response<Self::RenderTrajectoryStream>, Status> {
+        let request = request.into_inner();
+        let service = self.service()?.clone();
+        let format = image_format(request.format)?;
+        let preset = match request.preset_json.trim() {
+            "" => None,
+            json => Some(serde_json::from_str::<Trajectory>(json).map_err(|e| {
+                Status::invalid_argument(format!("preset_json is not a trajectory: {e}"))
+            })?),
+        };
+        let path = PathRequest {
+            preset,
+            cameras: request
+                .cameras
+                .into_iter()
+                .map(|c| camera_spec(Some(c)))
+                .collect(),
+            camera: camera_spec(request.camera),
+            frames: (request.frames != 0).then_some(request.frames as usize),
+            start: request.start,
+            end: request.end,
+            width: nonzero(request.width),
+            height: nonzero(request.height),
+            background: background(&request.background)?,
+        };
+        let record = service.store.get(&request.clip_id)?;
+        let plan = service.plan_path(&record, &path)?;
+        let encoding = service.store.encoding(&record.id).await?;
+        let (tx, rx) = mpsc::channel(STREAM_AHEAD);
+        let bg = path.background;
+        tokio::spawn(async move {
+            for (t, camera) in plan {
+                let encoding = encoding.clone();
+                let result = service
+                    .job(move |service| {
+                        let image = service.render_path_now(&encoding, &[(t, camera)], bg)?;
+                        let image = image.into_iter().next().ok_or_else(|| {
+                            ApiError::Internal("the renderer returned no image".into())
+                        })?;
+                        Ok(pb::RenderedImage {
+                            time: t,
+                            width: image.width,
+                            height: image.height,
+                            format: request.format,
+                            data: encode_image(&image, format)?,
+                        })
+                    })
+                    .await;
+                let end = result.is_err();
+                if tx.send(result.map_err(Status::from)).await.is_err() || end {
+                    return;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+
+    async fn list_models(
+        &self,
+        _: Request<pb::ListModelsRequest>,
+    ) -> Result<Response<pb::ListModelsResponse>, Status> {
+        let service = self.service()?;
+        let m = service.engine.manifest();
+        Ok(Response::new(pb::ListModelsResponse {
+            models: vec![pb::Model {
+                name: m.name.clone(),
+                version: m.version.clone(),
+                input_width: m.input.width,
+                input_height: m.input.height,
+                gaussians_per_set: m.gaussian_count as u32,
+                manifest_json: crate::api::models::describe(service).to_string(),
+            }],
+        }))
+    }
+}

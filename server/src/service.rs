@@ -1,0 +1,458 @@
+//! What the service does, whatever the transport: upload, decode, render. REST handlers and
+//! gRPC methods both translate into these calls.
+//!
+//! Encodes, decodes and renders are CPU work: they run on blocking threads, never on the async
+//! runtime's, so a slow encode cannot stall health checks or streams. Encodes take one of a few
+//! slots and are refused at once when all are busy (429); decode and render jobs wait for one of
+//! `C4G_MAX_CONCURRENT_JOBS` slots in a bounded queue (503 past it), which bounds memory under
+//! load.
+
+use std::io::Read;
+use std::path::Path;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
+
+use c4g_engine::{ContextFrame, Encoding, Engine};
+use c4g_renderer::{Camera, GaussianSet, Image, Trajectory};
+use sha2::{Digest, Sha256};
+use tokio::sync::Semaphore;
+
+use crate::ApiError;
+use crate::config::{Config, Limits};
+use crate::intake::{self, IntakeOptions, IntakeTools, Media};
+use crate::render::{CameraSpec, Renderer};
+use crate::store::{ClipRecord, ClipStore, NewClip, now};
+
+/// How long a client refused for lack of an encode slot should wait.
+const ENCODE_RETRY_AFTER: Duration = Duration::from_secs(5);
+/// How long a client refused for a full job queue should wait.
+const JOB_RETRY_AFTER: Duration = Duration::from_secs(1);
+
+/// The loaded service: the model, the clip store, the rasterizer and the limits.
+pub struct Service {
+    /// The model.
+    pub engine: Engine,
+    /// Every clip.
+    pub store: ClipStore,
+    /// The rasterizer.
+    pub renderer: Renderer,
+    /// Request limits.
+    pub limits: Limits,
+    /// FFmpeg and scratch space.
+    pub tools: IntakeTools,
+    model_key: String,
+    encode_slots: Arc<Semaphore>,
+    job_slots: Arc<Semaphore>,
+    queued_jobs: AtomicUsize,
+    max_queued_jobs: usize,
+}
+
+/// A render of one camera at one time.
+#[derive(Debug, Clone)]
+pub struct ViewRequest {
+    /// Media time, seconds.
+    pub t: f64,
+    /// The camera (default: the first context camera).
+    pub camera: CameraSpec,
+    /// Image width (default: the model's input width).
+    pub width: Option<u32>,
+    /// Image height (default: the model's input height).
+    pub height: Option<u32>,
+    /// Background RGB.
+    pub background: [f32; 3],
+}
+
+/// A camera path over a time range.
+#[derive(Debug, Clone, Default)]
+pub struct PathRequest {
+    /// A preset around `camera`…
+    pub preset: Option<Trajectory>,
+    /// …or explicit cameras, one per frame.
+    pub cameras: Vec<CameraSpec>,
+    /// The camera a preset moves around.
+    pub camera: CameraSpec,
+    /// Frames (default 24, or the number of explicit cameras).
+    pub frames: Option<usize>,
+    /// First time (default: the span's start).
+    pub start: Option<f64>,
+    /// Last time (default: the span's end).
+    pub end: Option<f64>,
+    /// Image width.
+    pub width: Option<u32>,
+    /// Image height.
+    pub height: Option<u32>,
+    /// Background RGB.
+    pub background: [f32; 3],
+}
+
+/// Frames of a trajectory when a request does not say.
+pub const DEFAULT_PATH_FRAMES: usize = 24;
+
+impl Service {
+    /// Builds the service around a loaded engine.
+    pub fn new(engine: Engine, config: &Config) -> Result<Self, String> {
+        let model_key = model_key(&engine).map_err(|e| format!("cannot hash the model: {e}"))?;
+        let limits = config.limits();
+        let store = ClipStore::open(
+            &config.store_dir,
+            &model_key,
+            config.cache_mib.saturating_mul(1 << 20),
+        )
+        .map_err(|e| e.to_string())?;
+        let renderer = Renderer::new(config.renderer)?;
+        let jobs = match config.max_concurrent_jobs {
+            0 => std::thread::available_parallelism().map_or(2, |n| n.get()),
+            n => n,
+        };
+        tracing::info!(renderer = renderer.name(), jobs, "service ready");
+        Ok(Self {
+            engine,
+            store,
+            renderer,
+            tools: IntakeTools::new(config.ffmpeg.clone(), config.store_dir.join("scratch")),
+            limits,
+            model_key,
+            encode_slots: Arc::new(Semaphore::new(config.max_concurrent_encodes.max(1))),
+            job_slots: Arc::new(Semaphore::new(jobs)),
+            queued_jobs: AtomicUsize::new(0),
+            max_queued_jobs: config.max_queued_jobs,
+        })
+    }
+
+    /// Stores (encoding once) an upload; `true` when this call created the clip.
+    pub async fn upload(
+        self: &Arc<Self>,
+        media: Media,
+        options: IntakeOptions,
+    ) -> Result<(Arc<ClipRecord>, bool), ApiError> {
+        let id = intake::clip_id(&self.model_key, &media, &options);
+        self.store
+            .get_or_create(&id, || self.encode(id.clone(), media, options))
+            .await
+    }
+
+    async fn encode(
+        self: &Arc<Self>,
+        id: String,
+        media: Media,
+        options: IntakeOptions,
+    ) -> Result<NewClip, ApiError> {
+        let _slot = self.encode_slots.clone().try_acquire_owned().map_err(|_| {
+            metrics::counter!("c4g_rejected_total", "reason" => "encodes_busy").increment(1);
+            ApiError::Busy {
+                retry_after: ENCODE_RETRY_AFTER,
+            }
+        })?;
+        let started = Instant::now();
+        let intake = intake::read(media, &options, &self.limits, &self.tools).await?;
+        metrics::histogram!("c4g_intake_duration_seconds").record(started.elapsed().as_secs_f64());
+        let service = self.clone();
+        let source = intake.source.clone();
+        let (encoding, frames) = tokio::task::spawn_blocking(move || {
+            let started = Instant::now();
+            let context = intake
+                .frames
+                .iter()
+                .map(|f| {
+                    Ok(ContextFrame::new(
+                        f.time,
+                        service.engine.preprocess(&f.image)?,
+                    ))
+                })
+                .collect::<Result<Vec<_>, ApiError>>()?;
+            let encoding = service.engine.encode(&context)?;
+            metrics::histogram!("c4g_encode_duration_seconds")
+                .record(started.elapsed().as_secs_f64());
+            let frames = intake.frames.into_iter().map(|f| f.image).collect();
+            Ok::<_, ApiError>((encoding, frames))
+        })
+        .await
+        .map_err(|e| ApiError::Internal(format!("encoding panicked: {e}")))??;
+        tracing::info!(clip = %id, frames = encoding.frame_count(), "clip encoded");
+        Ok(NewClip {
+            record: ClipRecord {
+                id,
+                model: self.engine.manifest().name.clone(),
+                created_at: now(),
+                options,
+                source,
+                context_times: encoding.times().to_vec(),
+                frame_order: encoding.frame_order().to_vec(),
+                feature_shape: encoding.shape(),
+            },
+            encoding,
+            frames,
+        })
+    }
+
+    /// Runs CPU work on a blocking thread once a job slot is free.
+    pub async fn job<T: Send + 'static>(
+        self: &Arc<Self>,
+        work: impl FnOnce(&Service) -> Result<T, ApiError> + Send + 'static,
+    ) -> Result<T, ApiError> {
+        if self.queued_jobs.fetch_add(1, Ordering::SeqCst) >= self.max_queued_jobs {
+            self.queued_jobs.fetch_sub(1, Ordering::SeqCst);
+            metrics::counter!("c4g_rejected_total", "reason" => "queue_full").increment(1);
+            return Err(ApiError::Overloaded {
+                retry_after: JOB_RETRY_AFTER,
+            });
+        }
+        let permit = self.job_slots.clone().acquire_owned().await;
+        self.queued_jobs.fetch_sub(1, Ordering::SeqCst);
+        let permit = permit.map_err(|_| ApiError::Internal("the job pool is closed".into()))?;
+        let service = self.clone();
+        tokio::task::spawn_blocking(move || {
+            let _permit = permit;
+            work(&service)
+        })
+        .await
+        .map_err(|e| ApiError::Internal(format!("a job panicked: {e}")))?
+    }
+
+    /// Checks that `times` can be decoded for `record`: finite, inside the context span, not
+    /// too many.
+    pub fn check_times(&self, record: &ClipRecord, times: &[f64]) -> Result<(), ApiError> {
+        if times.is_empty() {
+            return Err(ApiError::invalid(
+                "give at least one time (\"t\" or \"times\")",
+            ));
+        }
+        if times.len() > self.limits.max_times {
+            return Err(ApiError::TooLarge(format!(
+                "{} times in one request; at most {} (C4G_MAX_TIMES)",
+                times.len(),
+                self.limits.max_times
+            )));
+        }
+        let (first, last) = record.span();
+        for &t in times {
+            if !t.is_finite() {
+                return Err(ApiError::invalid(format!(
+                    "times must be finite numbers of seconds, got {t}"
+                )));
+            }
+            if t < first || t > last {
+                return Err(ApiError::invalid(format!(
+                    "t = {t} s is outside the clip's context span [{first}, {last}] s: the model \
+                     interpolates between its context frames and does not extrapolate"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// The Gaussians of clip `id` at each time.
+    pub async fn decode(
+        self: &Arc<Self>,
+        id: &str,
+        times: Vec<f64>,
+    ) -> Result<Vec<(f64, GaussianSet)>, ApiError> {
+        let record = self.store.get(id)?;
+        self.check_times(&record, &times)?;
+        let encoding = self.store.encoding(id).await?;
+        self.job(move |service| service.decode_now(&encoding, &times))
+            .await
+    }
+
+    /// Decodes on the calling (blocking) thread.
+    pub fn decode_now(
+        &self,
+        encoding: &Encoding,
+        times: &[f64],
+    ) -> Result<Vec<(f64, GaussianSet)>, ApiError> {
+        let started = Instant::now();
+        let sets = self.engine.decode(encoding, times)?;
+        metrics::histogram!("c4g_decode_duration_seconds").record(started.elapsed().as_secs_f64());
+        Ok(times.iter().copied().zip(sets).collect())
+    }
+
+    /// The image size a request asks for, checked against the limits.
+    pub fn image_size(
+        &self,
+        width: Option<u32>,
+        height: Option<u32>,
+    ) -> Result<(u32, u32), ApiError> {
+        let input = &self.engine.manifest().input;
+        let (w, h) = (width.unwrap_or(input.width), height.unwrap_or(input.height));
+        if w == 0 || h == 0 {
+            return Err(ApiError::invalid(format!(
+                "image size {w}x{h} must be at least 1x1"
+            )));
+        }
+        let max = self.limits.max_side;
+        if w > max || h > max || u64::from(w) * u64::from(h) > self.limits.max_render_pixels {
+            return Err(ApiError::TooLarge(format!(
+                "image size {w}x{h} is over the limit: sides up to {max} (C4G_MAX_SIDE), {} \
+                 pixels in all (C4G_MAX_RENDER_PIXELS)",
+                self.limits.max_render_pixels
+            )));
+        }
+        Ok((w, h))
+    }
+
+    /// Renders one view of clip `id`.
+    pub async fn render_view(
+        self: &Arc<Self>,
+        id: &str,
+        view: ViewRequest,
+    ) -> Result<Image, ApiError> {
+        let record = self.store.get(id)?;
+        self.check_times(&record, &[view.t])?;
+        let (w, h) = self.image_size(view.width, view.height)?;
+        let camera = view.camera.camera(w, h)?;
+        check_background(view.background)?;
+        let encoding = self.store.encoding(id).await?;
+        self.job(move |service| {
+            let (_, set) = service
+                .decode_now(&encoding, &[view.t])?
+                .pop()
+                .ok_or_else(|| ApiError::Internal("the decoder returned no set".into()))?;
+            service.render_now(&set, &camera, view.background)
+        })
+        .await
+    }
+
+    /// Renders on the calling (blocking) thread.
+    pub fn render_now(
+        &self,
+        set: &GaussianSet,
+        camera: &Camera,
+        background: [f32; 3],
+    ) -> Result<Image, ApiError> {
+        let started = Instant::now();
+        let image = self.renderer.render(set, camera, background)?;
+        metrics::histogram!("c4g_render_duration_seconds").record(started.elapsed().as_secs_f64());
+        Ok(image)
+    }
+
+    /// The (time, camera) of every frame of a path, checked.
+    pub fn plan_path(
+        &self,
+        record: &ClipRecord,
+        path: &PathRequest,
+    ) -> Result<Vec<(f64, Camera)>, ApiError> {
+        let (w, h) = self.image_size(path.width, path.height)?;
+        check_background(path.background)?;
+        let cameras = match (&path.preset, path.cameras.is_empty()) {
+            (Some(_), false) => {
+                return Err(ApiError::invalid(
+                    "give a trajectory preset or explicit cameras, not both",
+                ));
+            }
+            (None, false) => {
+                if path.frames.is_some_and(|n| n != path.cameras.len()) {
+                    return Err(ApiError::invalid(
+                        "with explicit cameras the frame count is the number of cameras",
+                    ));
+                }
+                path.cameras
+                    .iter()
+                    .map(|c| c.camera(w, h))
+                    .collect::<Result<Vec<_>, _>>()?
+            }
+            (preset, true) => {
+                let frames = path.frames.unwrap_or(DEFAULT_PATH_FRAMES);
+                if frames == 0 || frames > self.limits.max_times {
+                    return Err(ApiError::invalid(format!(
+                        "frames must be between 1 and {} (C4G_MAX_TIMES), got {frames}",
+                        self.limits.max_times
+                    )));
+                }
+                let reference = path.camera.camera(w, h)?;
+                match preset {
+                    Some(preset) => preset.cameras(&reference, frames)?,
+                    None => vec![reference; frames],
+                }
+            }
+        };
+        let (first, last) = record.span();
+        let (start, end) = (path.start.unwrap_or(first), path.end.unwrap_or(last));
+        let n = cameras.len();
+        let times: Vec<f64> = (0..n)
+            .map(|i| match n {
+                1 => start,
+                // The last frame is at `end` exactly: rounding must not step outside the span.
+                _ if i == n - 1 => end,
+                _ => (start + (end - start) * i as f64 / (n - 1) as f64).min(end),
+            })
+            .collect();
+        self.check_times(record, &[start, end])?;
+        Ok(times.into_iter().zip(cameras).collect())
+    }
+
+    /// Renders every frame of a planned path (decoding its times in batches).
+    pub fn render_path_now(
+        &self,
+        encoding: &Encoding,
+        plan: &[(f64, Camera)],
+        background: [f32; 3],
+    ) -> Result<Vec<Image>, ApiError> {
+        let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
+        let sets = self.decode_now(encoding, &times)?;
+        sets.iter()
+            .zip(plan)
+            .map(|((_, set), (_, camera))| self.render_now(set, camera, background))
+            .collect()
+    }
+
+    /// The clip's context frame `index` (upload order) as PNG bytes.
+    pub fn context_frame_png(&self, id: &str, index: usize) -> Result<Vec<u8>, ApiError> {
+        let record = self.store.get(id)?;
+        if index >= record.context_times.len() {
+            return Err(ApiError::NotFound(format!(
+                "clip {id} has {} context frames (0..{})",
+                record.context_times.len(),
+                record.context_times.len()
+            )));
+        }
+        let mut bytes = Vec::new();
+        std::fs::File::open(self.store.frame_path(id, index))
+            .and_then(|mut f| f.read_to_end(&mut bytes))
+            .map_err(|e| ApiError::Internal(format!("cannot read a context frame: {e}")))?;
+        Ok(bytes)
+    }
+
+    /// What `/v1/models` says about the served model.
+    pub fn model_key(&self) -> &str {
+        &self.model_key
+    }
+}
+
+fn check_background(background: [f32; 3]) -> Result<(), ApiError> {
+    if background.iter().all(|v| v.is_finite()) {
+        Ok(())
+    } else {
+        Err(ApiError::invalid(format!(
+            "background {background:?} must be finite"
+        )))
+    }
+}
+
+/// A short hash of the package's manifest and graphs: clips are stored per model.
+fn model_key(engine: &Engine) -> std::io::Result<String> {
+    let package = engine.package();
+    let mut hasher = Sha256::new();
+    let mut files = vec![
+        package.dir().join("model.json"),
+        package.encoder_path(),
+        package.decoder_path(),
+    ];
+    files.extend(package.feature_decoder_path());
+    for file in files {
+        hash_file(&mut hasher, &file)?;
+    }
+    Ok(hex::encode(&hasher.finalize()[..8]))
+}
+
+fn hash_file(hasher: &mut Sha256, path: &Path) -> std::io::Result<()> {
+    let mut file = std::fs::File::open(path)?;
+    let mut buffer = vec![0u8; 1 << 20];
+    loop {
+        let n = file.read(&mut buffer)?;
+        if n == 0 {
+            return Ok(());
+        }
+        hasher.update(&buffer[..n]);
+    }
+}

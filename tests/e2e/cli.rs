@@ -1,0 +1,170 @@
+//! The `c4g` command-line tool against a live `c4g-server`: upload, info, decode, export,
+//! render and stream, with readable and `--json` output, and errors a person can act on.
+#![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use c4g_e2e::{Server, binary, ort_available, shared_data, synthetic_clip};
+use c4g_renderer::formats::ply;
+use reqwest::blocking::Client;
+use serde_json::{Value, json};
+
+fn c4g(server: &Server, args: &[&str]) -> Output {
+    Command::new(binary("c4g"))
+        .arg("--server")
+        .arg(server.url())
+        .args(args)
+        .env_remove("C4G_API_KEY")
+        .output()
+        .unwrap()
+}
+
+fn ok(output: Output) -> String {
+    let stdout = String::from_utf8(output.stdout).unwrap();
+    assert!(
+        output.status.success(),
+        "stdout: {stdout}\nstderr: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    stdout
+}
+
+fn path(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn the_cli_uploads_decodes_exports_renders_and_streams() {
+    if !ort_available() {
+        return;
+    }
+    let server = Server::start(&[]);
+    let work = tempfile::tempdir().unwrap();
+
+    // Upload a directory of frames with their timestamps; --json gives the clip.
+    let (frames, times) = synthetic_clip();
+    let dir = work.path().join("frames");
+    std::fs::create_dir(&dir).unwrap();
+    for frame in &frames {
+        std::fs::copy(frame, dir.join(frame.file_name().unwrap())).unwrap();
+    }
+    let stamps: Vec<String> = times.iter().map(f64::to_string).collect();
+    let clip: Value = serde_json::from_str(&ok(c4g(
+        &server,
+        &[
+            "--json",
+            "upload",
+            path(&dir),
+            "--timestamps",
+            &stamps.join(","),
+        ],
+    )))
+    .unwrap();
+    let id = clip["id"].as_str().unwrap().to_owned();
+    assert_eq!(clip["context_times"], json!([0.0, 0.2, 0.4, 0.6]));
+
+    // Readable info names the model and the clip.
+    let info = ok(c4g(&server, &["info"]));
+    assert!(info.contains("c4g-tiny") && info.contains(&id), "{info}");
+
+    // Decode as JSON equals the REST API's answer; export writes a PLY of the same set.
+    let decoded: Value =
+        serde_json::from_str(&ok(c4g(&server, &["--json", "decode", &id, "--t", "0.3"]))).unwrap();
+    let rest: Value = Client::new()
+        .post(server.at(&format!("/v1/clips/{id}/gaussians")))
+        .json(&json!({"t": 0.3}))
+        .send()
+        .unwrap()
+        .json()
+        .unwrap();
+    assert_eq!(decoded["frames"], rest["frames"]);
+    let exported = work.path().join("moment.ply");
+    ok(c4g(
+        &server,
+        &["export", &id, "--t", "0.3", "-o", path(&exported)],
+    ));
+    let set = ply::read(&exported).unwrap();
+    assert_eq!(set.len(), 512);
+    let x = rest["frames"][0]["means"][0][0].as_f64().unwrap();
+    assert!((f64::from(set.positions()[0][0]) - x).abs() < 1e-6);
+
+    // Render writes the PNG the server renders.
+    let image = work.path().join("view.png");
+    ok(c4g(
+        &server,
+        &["render", &id, "--t", "0.3", "-o", path(&image)],
+    ));
+    let served = Client::new()
+        .post(server.at(&format!("/v1/clips/{id}/render")))
+        .json(&json!({"t": 0.3}))
+        .send()
+        .unwrap()
+        .bytes()
+        .unwrap();
+    assert_eq!(
+        image::open(&image).unwrap().to_rgb8().into_raw(),
+        image::load_from_memory(&served)
+            .unwrap()
+            .to_rgb8()
+            .into_raw()
+    );
+
+    // Stream over gRPC: one PLY per set, 0 to 0.6 s at 10 sets a second.
+    let out = work.path().join("stream");
+    ok(c4g(
+        &server,
+        &["stream", &id, "--fps", "10", "-o", path(&out)],
+    ));
+    let mut written: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    written.sort();
+    assert_eq!(written.len(), 7, "{written:?}");
+
+    // An error names the status, the kind and what is wrong.
+    let late = c4g(&server, &["decode", &id, "--t", "9"]);
+    assert!(!late.status.success());
+    let stderr = String::from_utf8_lossy(&late.stderr);
+    assert!(
+        stderr.contains("400 invalid_input") && stderr.contains("context span"),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn the_cli_uploads_a_real_video_with_a_window_and_a_stride() {
+    if !ort_available() {
+        return;
+    }
+    let Some(data) = shared_data() else { return };
+    let server = Server::start(&[]);
+    let video = data.join("dog/01_dog.mp4");
+    let clip: Value = serde_json::from_str(&ok(c4g(
+        &server,
+        &[
+            "--json",
+            "upload",
+            path(&video),
+            "--start",
+            "1",
+            "--end",
+            "3",
+            "--stride",
+            "15",
+        ],
+    )))
+    .unwrap();
+    let times: Vec<f64> = clip["context_times"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t.as_f64().unwrap())
+        .collect();
+    // 29.97 fps: frames 30 (1.001 s) to 89 (2.970 s) lie in [1, 3] s; every 15th is 30, 45, 60, 75.
+    assert_eq!(times.len(), 4, "{times:?}");
+    assert!((times[0] - 1.001).abs() < 1e-3, "{times:?}");
+    assert!(times.iter().all(|t| (1.0..=3.0).contains(t)), "{times:?}");
+    assert_eq!(clip["source"]["frames"], 289);
+}

@@ -1,0 +1,323 @@
+//! What the end-to-end tests share: `c4g-server` started as a real process on a loopback port
+//! (with the default model, from the repository root, as the quick start runs it), and paths to
+//! the binaries and data.
+//!
+//! The binaries are the workspace's own build (`cargo build --bins`, which `scripts/test` runs
+//! before the tests): found beside the test executable in the target directory.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// The repository root.
+pub fn workspace() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .unwrap()
+        .to_path_buf()
+}
+
+/// A binary of the workspace's build (`c4g-server`, `c4g`).
+pub fn binary(name: &str) -> PathBuf {
+    let exe = std::env::current_exe().unwrap();
+    // target/<profile>/deps/<test> → target/<profile>/<name>
+    let path = exe.parent().unwrap().parent().unwrap().join(name);
+    assert!(
+        path.exists(),
+        "{} is missing: run `cargo build --workspace --bins` first (scripts/test does)",
+        path.display()
+    );
+    path
+}
+
+/// The team's real clips (`../shared/data`), or `None` (allowed only outside CI).
+pub fn shared_data() -> Option<PathBuf> {
+    let dir = std::env::var_os("C4G_SHARED")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| workspace().join("../shared"))
+        .join("data");
+    if dir.is_dir() {
+        Some(dir)
+    } else {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "in CI the team data must be beside the checkout"
+        );
+        eprintln!("skipped: no ../shared/data");
+        None
+    }
+}
+
+/// True when ONNX Runtime can load (outside CI a test may skip without it).
+pub fn ort_available() -> bool {
+    let ok = std::env::var_os("ORT_DYLIB_PATH").is_some_and(|p| !p.is_empty());
+    if !ok {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "in CI ORT_DYLIB_PATH must be set"
+        );
+        eprintln!("skipped: ORT_DYLIB_PATH is not set");
+    }
+    ok
+}
+
+/// A running `c4g-server`, killed on drop, with its own store directory.
+pub struct Server {
+    child: Child,
+    /// Where it listens.
+    pub addr: SocketAddr,
+    /// Its store directory.
+    pub store: tempfile::TempDir,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Server {
+    /// Starts the server with the default model and `args`, and waits until it is ready.
+    pub fn start(args: &[&str]) -> Server {
+        Self::start_in(tempfile::tempdir().unwrap(), args)
+    }
+
+    /// Starts it on an existing store directory (to test what survives a restart).
+    pub fn start_in(store: tempfile::TempDir, args: &[&str]) -> Server {
+        let mut child = Command::new(binary("c4g-server"))
+            .current_dir(workspace())
+            .env_remove("C4G_MODEL")
+            .env_remove("C4G_API_KEY")
+            .args(["--listen", "127.0.0.1:0", "--store-dir"])
+            .arg(store.path())
+            .args(args)
+            // Warnings and errors only, unless the caller asks for more.
+            .env(
+                "RUST_LOG",
+                std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
+            )
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap();
+        let stdout = child.stdout.take().unwrap();
+        let mut line = String::new();
+        BufReader::new(stdout).read_line(&mut line).unwrap();
+        let addr: SocketAddr = line
+            .trim()
+            .strip_prefix("listening on ")
+            .unwrap_or_else(|| panic!("unexpected first line: {line:?}"))
+            .parse()
+            .unwrap();
+        let server = Server { child, addr, store };
+        server.wait_ready();
+        server
+    }
+
+    /// `http://addr`.
+    pub fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    /// `http://addr/path`.
+    pub fn at(&self, path: &str) -> String {
+        format!("http://{}{}", self.addr, path)
+    }
+
+    fn wait_ready(&self) {
+        let client = reqwest::blocking::Client::new();
+        let deadline = Instant::now() + Duration::from_secs(120);
+        loop {
+            if let Ok(r) = client.get(self.at("/ready")).send()
+                && r.status().is_success()
+            {
+                return;
+            }
+            assert!(Instant::now() < deadline, "the server never became ready");
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
+    /// The process id (for memory readings).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// True while the process runs.
+    pub fn alive(&mut self) -> bool {
+        self.child.try_wait().unwrap().is_none()
+    }
+
+    /// Stops the server and gives back its store directory.
+    pub fn stop(mut self) -> tempfile::TempDir {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let store = tempfile::tempdir().unwrap();
+        std::mem::replace(&mut self.store, store)
+    }
+}
+
+/// The synthetic test clip of the default model: its frames' paths and times.
+pub fn synthetic_clip() -> (Vec<PathBuf>, Vec<f64>) {
+    let dir = workspace().join("models/c4g-tiny/test-clips/seed-2000000");
+    let clip: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("clip.json")).unwrap()).unwrap();
+    let frames = clip["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| dir.join(f.as_str().unwrap()))
+        .collect();
+    let times = clip["times"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t.as_f64().unwrap())
+        .collect();
+    (frames, times)
+}
+
+/// A multipart form of image frames with explicit timestamps.
+pub fn frames_form(frames: &[PathBuf], times: &[f64]) -> reqwest::blocking::multipart::Form {
+    let mut form = reqwest::blocking::multipart::Form::new().text(
+        "timestamps",
+        times
+            .iter()
+            .map(f64::to_string)
+            .collect::<Vec<_>>()
+            .join(","),
+    );
+    for path in frames {
+        form = form.part("frame", file_part(path));
+    }
+    form
+}
+
+fn file_part(path: &Path) -> reqwest::blocking::multipart::Part {
+    reqwest::blocking::multipart::Part::bytes(std::fs::read(path).unwrap())
+        .file_name(path.file_name().unwrap().to_string_lossy().into_owned())
+}
+
+/// Peak resident memory of a process, bytes (Linux `VmHWM`).
+pub fn peak_rss(pid: u32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+/// Latencies of a burst of concurrent requests.
+#[derive(Debug, Clone)]
+pub struct Burst {
+    /// Seconds per request, sorted.
+    pub latencies: Vec<f64>,
+    /// Wall-clock seconds for the whole burst.
+    pub wall: f64,
+    /// Requests that did not answer 200.
+    pub failures: Vec<String>,
+}
+
+impl Burst {
+    /// The `q`-quantile latency (nearest rank).
+    pub fn quantile(&self, q: f64) -> f64 {
+        let n = self.latencies.len();
+        if n == 0 {
+            return f64::NAN;
+        }
+        let rank = ((q * n as f64).ceil() as usize).clamp(1, n);
+        self.latencies[rank - 1]
+    }
+
+    /// Requests per second over the burst.
+    pub fn throughput(&self) -> f64 {
+        self.latencies.len() as f64 / self.wall
+    }
+}
+
+/// Sends `requests` POSTs (path and JSON body) all at once, one thread each, and times them.
+pub fn burst(server: &Server, requests: &[(String, serde_json::Value)]) -> Burst {
+    let client = reqwest::blocking::Client::builder()
+        .pool_max_idle_per_host(requests.len())
+        .timeout(Duration::from_secs(600))
+        .build()
+        .unwrap();
+    let start = std::sync::Barrier::new(requests.len());
+    let begun = Instant::now();
+    let results: Vec<Result<f64, String>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = requests
+            .iter()
+            .map(|(path, body)| {
+                let (client, start, url) = (&client, &start, server.at(path));
+                scope.spawn(move || {
+                    start.wait();
+                    let t0 = Instant::now();
+                    let response = client
+                        .post(&url)
+                        .json(body)
+                        .send()
+                        .map_err(|e| e.to_string())?;
+                    let status = response.status();
+                    let bytes = response.bytes().map_err(|e| e.to_string())?;
+                    if status.is_success() {
+                        Ok(t0.elapsed().as_secs_f64())
+                    } else {
+                        Err(format!("{status}: {}", String::from_utf8_lossy(&bytes)))
+                    }
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    let wall = begun.elapsed().as_secs_f64();
+    let mut latencies: Vec<f64> = results
+        .iter()
+        .filter_map(|r| r.as_ref().ok().copied())
+        .collect();
+    latencies.sort_by(f64::total_cmp);
+    let failures = results.into_iter().filter_map(Result::err).collect();
+    Burst {
+        latencies,
+        wall,
+        failures,
+    }
+}
+
+/// Uploads the synthetic test clip and gives its id.
+pub fn upload_synthetic(server: &Server) -> String {
+    let (frames, times) = synthetic_clip();
+    let response = reqwest::blocking::Client::new()
+        .post(server.at("/v1/clips"))
+        .multipart(frames_form(&frames, &times))
+        .send()
+        .unwrap();
+    assert!(response.status().is_success());
+    response.json::<serde_json::Value>().unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_owned()
+}
+
+/// 32 decodes and 32 renders (128²) at times spread over the synthetic clip's span.
+pub fn mixed_requests(id: &str) -> Vec<(String, serde_json::Value)> {
+    (0..64)
+        .map(|i| {
+            let t = 0.6 * f64::from(i % 32) / 31.0;
+            if i % 2 == 0 {
+                (
+                    format!("/v1/clips/{id}/gaussians"),
+                    serde_json::json!({"t": t, "format": "binary"}),
+                )
+            } else {
+                (
+                    format!("/v1/clips/{id}/render"),
+                    serde_json::json!({"t": t, "width": 128, "height": 128}),
+                )
+            }
+        })
+        .collect()
+}
