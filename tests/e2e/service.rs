@@ -441,3 +441,155 @@ fn the_synthetic_test_clip_reconstructs_as_the_model_card_says_and_survives_a_re
     );
     assert!(metrics.contains("c4g_cache_misses_total 1"), "{metrics}");
 }
+
+fn zip_of_frames(frames: &[std::path::PathBuf]) -> Vec<u8> {
+    use std::io::Write;
+    let mut writer = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    for frame in frames {
+        writer
+            .start_file(
+                frame.file_name().unwrap().to_string_lossy(),
+                zip::write::SimpleFileOptions::default(),
+            )
+            .unwrap();
+        writer.write_all(&std::fs::read(frame).unwrap()).unwrap();
+    }
+    writer.finish().unwrap().into_inner()
+}
+
+fn metric(text: &str, name: &str) -> f64 {
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
+        .unwrap_or(0.0)
+}
+
+#[test]
+fn concurrent_uploads_of_one_clip_encode_once_and_evicted_features_reload_from_disk() {
+    if !ort_available() {
+        return;
+    }
+    // No memory for features: every clip but the newest is evicted, and reads come from disk.
+    let server = Server::start(&["--cache-mib", "0"]);
+    let (frames, times) = synthetic_clip();
+    let archive = zip_of_frames(&frames);
+
+    // Four gRPC uploads of the same zip at once: one clip, encoded once.
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let clips: Vec<pb::Clip> = runtime.block_on(async {
+        let uploads = (0..4).map(|_| {
+            let (url, archive, times) = (server.url(), archive.clone(), times.clone());
+            tokio::spawn(async move {
+                let mut grpc = C4gClient::connect(url).await.unwrap();
+                let header = pb::UploadRequest {
+                    part: Some(pb::upload_request::Part::Header(pb::UploadHeader {
+                        kind: pb::MediaKind::Zip as i32,
+                        timestamps: times,
+                        ..Default::default()
+                    })),
+                };
+                let chunks = archive.chunks(4096).map(|c| pb::UploadRequest {
+                    part: Some(pb::upload_request::Part::Chunk(c.to_vec())),
+                });
+                let messages: Vec<_> = std::iter::once(header).chain(chunks).collect();
+                grpc.upload(tokio_stream::iter(messages))
+                    .await
+                    .unwrap()
+                    .into_inner()
+            })
+        });
+        let mut clips = Vec::new();
+        for upload in uploads {
+            clips.push(upload.await.unwrap());
+        }
+        clips
+    });
+    assert!(clips.iter().all(|c| c.clip_id == clips[0].clip_id));
+    assert_eq!(clips.iter().filter(|c| c.created).count(), 1);
+    assert_eq!(clips[0].context_times, vec![0.0, 0.2, 0.4, 0.6]);
+    let client = Client::new();
+    let metrics = client
+        .get(server.at("/metrics"))
+        .send()
+        .unwrap()
+        .text()
+        .unwrap();
+    assert_eq!(metric(&metrics, "c4g_encode_duration_seconds_count"), 1.0);
+
+    // A second clip (the same frames at another rate) evicts the first; decoding the first reads
+    // its features back from disk and gives the same Gaussians.
+    let first = &clips[0].clip_id;
+    let before = json_of(post_json(
+        &client,
+        server.at(&format!("/v1/clips/{first}/gaussians")),
+        json!({"t": 0.3}),
+    ));
+    let second = json_of(
+        client
+            .post(server.at("/v1/clips?fps=5"))
+            .header("content-type", "application/zip")
+            .body(archive)
+            .send()
+            .unwrap(),
+    );
+    assert_ne!(second["id"], json!(first));
+    let after = json_of(post_json(
+        &client,
+        server.at(&format!("/v1/clips/{first}/gaussians")),
+        json!({"t": 0.3}),
+    ));
+    assert_eq!(before, after);
+    let metrics = client
+        .get(server.at("/metrics"))
+        .send()
+        .unwrap()
+        .text()
+        .unwrap();
+    assert!(
+        metric(&metrics, "c4g_cache_evictions_total") >= 1.0,
+        "{metrics}"
+    );
+    assert!(
+        metric(&metrics, "c4g_cache_misses_total") >= 1.0,
+        "{metrics}"
+    );
+}
+
+#[test]
+fn a_full_encode_pool_refuses_at_once_with_retry_after() {
+    if !ort_available() {
+        return;
+    }
+    let Some(data) = shared_data() else { return };
+    let server = Server::start(&["--max-concurrent-encodes", "1"]);
+    let video = std::fs::read(data.join("dog/01_dog.mp4")).unwrap();
+    let (frames, times) = synthetic_clip();
+    std::thread::scope(|scope| {
+        let slow = scope.spawn(|| {
+            Client::new()
+                .post(server.at("/v1/clips?max_frames=8"))
+                .body(video)
+                .send()
+                .unwrap()
+                .status()
+        });
+        // While the video is read (seconds), another upload finds no free slot.
+        std::thread::sleep(std::time::Duration::from_millis(400));
+        let refused = Client::new()
+            .post(server.at("/v1/clips"))
+            .multipart(frames_form(&frames, &times))
+            .send()
+            .unwrap();
+        assert_eq!(refused.status(), 429);
+        assert_eq!(refused.headers()["retry-after"], "5");
+        let body: Value = refused.json().unwrap();
+        assert_eq!(body["kind"], "busy");
+        assert_eq!(slow.join().unwrap(), 201);
+    });
+    // Once the slot is free the same upload goes through.
+    let ok = Client::new()
+        .post(server.at("/v1/clips"))
+        .multipart(frames_form(&frames, &times))
+        .send()
+        .unwrap();
+    assert_eq!(ok.status(), 201);
+}
