@@ -1,0 +1,9 @@
+"""The Python side of the video-diffusion refiner: Wan2.1-VACE, built from diffusers' own classes.
+
+- `configs`: the real 1.3B configuration and the tiny random-weight stand-in (same structure, CPU-sized).
+- `onnx_graphs`: the transformer and VAE encoder / decoder as ONNX graphs (parameter names kept, fused
+  attention, fixed shapes).
+- `lora`: LoRA files in PEFT and original-Wan naming, the module-name map between them.
+- `reference`: diffusers' WanVACEPipeline runs and schedules that the Rust refiner must reproduce.
+- `export`: the command line (`python -m c4g.wan.export`) and the refiner package format (refiner.json).
+"""
