@@ -6,7 +6,7 @@ use prost::Message;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("cargo:rerun-if-changed=c4g");
-    let descriptors = protox::compile(["c4g/v1/c4g.proto"], ["."])?;
+    let descriptors = protox::compile(["c4g/v1/c4g.proto", "c4g/v1/jobs.proto"], ["."])?;
     let out = std::path::PathBuf::from(std::env::var("OUT_DIR")?);
     std::fs::write(out.join("c4g_descriptor.bin"), descriptors.encode_to_vec())?;
     tonic_prost_build::configure().compile_fds(descriptors)?;

@@ -59,6 +59,10 @@ pub enum Error {
     /// a directory without images, ...).
     #[error("{0}")]
     InvalidInput(String),
+    /// A stream of updates ended before what it follows did: the connection closed early (a
+    /// server restart, a proxy's timeout). Following again may pick up where it stopped.
+    #[error("{0}")]
+    Interrupted(String),
     /// The server's answer does not follow the API (a truncated payload, a bad header, JSON of
     /// another shape).
     #[error("malformed answer from the server: {0}")]

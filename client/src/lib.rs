@@ -2,9 +2,10 @@
 //! command-line tool built on it.
 //!
 //! One [`Client`] speaks both of the server's protocols on its one port: REST under `/v1` for
-//! requests that answer once (upload, describe, decode, render) and gRPC (`c4g.v1.C4G`, h2c) for
-//! [`Client::stream`], where a server-streaming call carries many Gaussian sets with the
-//! transport's flow control. `docs/api.md` is the contract both sides are written against.
+//! requests that answer once (upload, describe, decode, render, refinement jobs; a job's progress
+//! as server-sent events) and gRPC (`c4g.v1.C4G`, h2c) for [`Client::stream`], where a
+//! server-streaming call carries many Gaussian sets with the transport's flow control.
+//! `docs/api.md` is the contract both sides are written against.
 //!
 //! | module | what |
 //! |---|---|
@@ -17,6 +18,8 @@
 //! | [`wire`] | parsers of the packed Gaussian payloads: the `C4GS` binary format and the proto's arrays |
 //! | [`render`] | [`RenderRequest`] and [`Client::render`]: images, depth, alpha and trajectory videos |
 //! | [`stream`] | [`Client::stream`]: Gaussian sets over a time range, over gRPC |
+//! | [`jobs`] | [`RefineRequest`], [`Client::refine`] and [`Job`]: refinement jobs, followed as server-sent events |
+//! | [`sse`] | [`SseDecoder`]: the `text/event-stream` format, chunk by chunk |
 //!
 //! Gaussian sets arrive as [`c4g_renderer::GaussianSet`], so they write straight to `.ply` or
 //! `.splat` with [`c4g_renderer::formats`] and render with the renderer's rasterizers.
@@ -25,8 +28,10 @@ pub mod client;
 pub mod clips;
 pub mod error;
 pub mod gaussians;
+pub mod jobs;
 pub mod model;
 pub mod render;
+pub mod sse;
 pub mod stream;
 pub mod upload;
 pub mod wire;
@@ -36,9 +41,11 @@ pub use client::Client;
 pub use clips::{Clip, ClipSource};
 pub use error::Error;
 pub use gaussians::{GaussianFormat, GaussianFrame, Precision};
+pub use jobs::{Job, JobEvents, JobProgress, RefineRequest, Sampler, job_event_stream};
 pub use model::{InputSize, Model};
 pub use render::{
     CameraSpec, IntrinsicsSpec, RenderFormat, RenderRequest, Rendered, TrajectoryPreset,
 };
+pub use sse::{SseDecoder, SseEvent};
 pub use stream::{GaussianStream, Spacing, StreamOptions};
 pub use upload::{UploadOptions, UploadSource, content_type_for};

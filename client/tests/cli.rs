@@ -30,6 +30,10 @@ fn help_lists_every_command_and_the_global_flags() {
         "export",
         "render",
         "stream",
+        "refine",
+        "job",
+        "jobs",
+        "cancel",
         "--server",
         "--api-key",
         "--json",
@@ -43,11 +47,74 @@ fn help_lists_every_command_and_the_global_flags() {
 #[test]
 fn every_subcommand_has_help() {
     for command in [
-        "upload", "info", "clips", "delete", "decode", "export", "render", "stream",
+        "upload", "info", "clips", "delete", "decode", "export", "render", "stream", "refine",
+        "job", "jobs", "cancel",
     ] {
         let out = c4g(&[command, "--help"]);
         assert!(out.status.success(), "{command} --help failed");
         assert!(!out.stdout.is_empty());
+    }
+}
+
+#[test]
+fn refine_help_names_its_options() {
+    let out = c4g(&["refine", "--help"]);
+    assert!(out.status.success());
+    let help = String::from_utf8(out.stdout).unwrap();
+    for word in [
+        "<CLIP>",
+        "--orbit <DEGREES>",
+        "--depth <D>",
+        "--trajectory <JSON>",
+        "--start",
+        "--end",
+        "--steps <N>",
+        "--guidance <G>",
+        "--shift <S>",
+        "--sampler",
+        "unipc",
+        "euler",
+        "--seed <N>",
+        "--caption <TEXT>",
+        "--context-frames <N>",
+        "--output <OUT.mp4>",
+        "--no-wait",
+        "--json",
+    ] {
+        assert!(help.contains(word), "refine --help lacks {word}:\n{help}");
+    }
+    for command in ["job", "cancel"] {
+        let out = c4g(&[command, "--help"]);
+        let help = String::from_utf8(out.stdout).unwrap();
+        assert!(help.contains("<JOB>"), "{command} --help:\n{help}");
+    }
+}
+
+#[test]
+fn refine_usage_errors_exit_non_zero() {
+    for args in [
+        &["refine"][..],
+        &[
+            "refine",
+            "clip",
+            "--orbit",
+            "20",
+            "--trajectory",
+            "{\"kind\": \"dolly\"}",
+        ],
+        &["refine", "clip", "--depth", "3"],
+        &["refine", "clip", "--no-wait", "-o", "x.mp4"],
+        &["refine", "clip", "--sampler", "ddim"],
+        &["refine", "clip", "--steps", "-1"],
+        &["job"],
+        &["cancel"],
+    ] {
+        let out = c4g(args);
+        assert_eq!(
+            out.status.code(),
+            Some(2),
+            "{args:?} should be a usage error"
+        );
     }
 }
 
@@ -124,4 +191,241 @@ fn an_unreachable_server_is_an_error_not_a_panic() {
         stderr.starts_with("error: request to the server failed"),
         "{stderr}"
     );
+}
+
+/// A fake server for whole commands: answers each request (one per connection) with the body
+/// `route` gives its request line; returns its address and the request lines it served.
+fn serve(
+    route: impl Fn(&str) -> (&'static str, &'static str, Vec<u8>) + Send + 'static,
+    requests: usize,
+) -> (String, std::thread::JoinHandle<Vec<String>>) {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let address = format!("http://{}", listener.local_addr().unwrap());
+    let server = std::thread::spawn(move || {
+        let mut lines = Vec::new();
+        for _ in 0..requests {
+            let (mut socket, _) = listener.accept().unwrap();
+            let mut received = Vec::new();
+            let mut buffer = [0u8; 4096];
+            let head_end = loop {
+                let n = socket.read(&mut buffer).unwrap();
+                received.extend_from_slice(&buffer[..n]);
+                if let Some(i) = received.windows(4).position(|w| w == b"\r\n\r\n") {
+                    break i + 4;
+                }
+            };
+            let head = String::from_utf8_lossy(&received[..head_end]).into_owned();
+            let length: usize = head
+                .lines()
+                .find_map(|l| {
+                    l.to_ascii_lowercase()
+                        .strip_prefix("content-length:")
+                        .map(|v| v.trim().parse().unwrap())
+                })
+                .unwrap_or(0);
+            while received.len() < head_end + length {
+                let n = socket.read(&mut buffer).unwrap();
+                received.extend_from_slice(&buffer[..n]);
+            }
+            let line = head.lines().next().unwrap().to_owned();
+            let (status, content_type, body) = route(&line);
+            write!(
+                socket,
+                "HTTP/1.1 {status}\r\ncontent-type: {content_type}\r\ncontent-length: {}\r\n\
+                 connection: close\r\n\r\n",
+                body.len()
+            )
+            .unwrap();
+            socket.write_all(&body).unwrap();
+            lines.push(line);
+        }
+        lines
+    });
+    (address, server)
+}
+
+fn job_json(state: &str, fields: serde_json::Value) -> String {
+    let mut job = serde_json::json!({
+        "id": "job-01", "clip_id": "3f2a", "state": state, "attempt": 1, "max_attempts": 3,
+        "worker": null, "progress": null, "error": null, "history": [], "result_frames": 2,
+        "seconds": null,
+    });
+    for (key, value) in fields.as_object().unwrap() {
+        job[key] = value.clone();
+    }
+    job.to_string()
+}
+
+fn events(records: &[String]) -> Vec<u8> {
+    records
+        .iter()
+        .map(|r| format!("event: job\ndata: {r}\n\n:\n\n"))
+        .collect::<String>()
+        .into_bytes()
+}
+
+#[test]
+fn refine_follows_the_job_and_writes_the_result() {
+    let dir = tempfile::tempdir().unwrap();
+    let output = dir.path().join("out.mp4");
+    let (server, handle) = serve(
+        |line| match line.split(' ').nth(1).unwrap() {
+            "/v1/clips/3f2a/refine" => (
+                "202 Accepted",
+                "application/json",
+                job_json("queued", serde_json::json!({})).into(),
+            ),
+            "/v1/jobs/job-01/events" => (
+                "200 OK",
+                "text/event-stream",
+                events(&[
+                    job_json("queued", serde_json::json!({})),
+                    job_json(
+                        "running",
+                        serde_json::json!({"progress": {"step": 1, "steps": 4, "stage": "denoising"}}),
+                    ),
+                    job_json("done", serde_json::json!({})),
+                ]),
+            ),
+            "/v1/jobs/job-01/result" => ("200 OK", "video/mp4", b"mp4 bytes".to_vec()),
+            other => panic!("unexpected {other}"),
+        },
+        3,
+    );
+    let out = c4g(&[
+        "--server",
+        &server,
+        "refine",
+        "3f2a",
+        "--orbit",
+        "20",
+        "--steps",
+        "4",
+        "-o",
+        output.to_str().unwrap(),
+    ]);
+    let lines = handle.join().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(
+        lines,
+        [
+            "POST /v1/clips/3f2a/refine HTTP/1.1",
+            "GET /v1/jobs/job-01/events HTTP/1.1",
+            "GET /v1/jobs/job-01/result HTTP/1.1",
+        ]
+    );
+    assert_eq!(
+        String::from_utf8(out.stdout).unwrap(),
+        format!("wrote {}\n", output.display())
+    );
+    assert_eq!(std::fs::read(&output).unwrap(), b"mp4 bytes");
+}
+
+#[test]
+fn a_failed_refinement_exits_1_with_the_jobs_error() {
+    let (server, handle) = serve(
+        |line| match line.split(' ').nth(1).unwrap() {
+            "/v1/clips/3f2a/refine" => (
+                "202 Accepted",
+                "application/json",
+                job_json("queued", serde_json::json!({})).into(),
+            ),
+            "/v1/jobs/job-01/events" => (
+                "200 OK",
+                "text/event-stream",
+                events(&[job_json(
+                    "failed",
+                    serde_json::json!({
+                        "error": "out of memory (attempt 3 of 3)",
+                        "history": ["attempt 1: worker w1 stopped responding"]
+                    }),
+                )]),
+            ),
+            other => panic!("unexpected {other}"),
+        },
+        2,
+    );
+    let out = c4g(&["--server", &server, "--json", "refine", "3f2a"]);
+    handle.join().unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let stdout = String::from_utf8(out.stdout).unwrap();
+    let record: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    assert_eq!(record["state"], "failed");
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        stderr.contains("job job-01: attempt 1: worker w1 stopped responding"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.ends_with("error: job job-01 failed: out of memory (attempt 3 of 3)\n"),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn job_jobs_cancel_and_no_wait_print_the_records() {
+    let running = job_json(
+        "running",
+        serde_json::json!({
+            "worker": "w1",
+            "progress": {"step": 3, "steps": 30, "stage": "denoising"},
+            "history": ["attempt 1: worker w0 stopped responding"],
+            "attempt": 2,
+        }),
+    );
+    let list = format!(r#"{{"jobs": [{running}]}}"#);
+    let cancelled = job_json("cancelled", serde_json::json!({}));
+    let queued = job_json("queued", serde_json::json!({}));
+    let (server, handle) = serve(
+        move |line| match line {
+            "GET /v1/jobs/job-01 HTTP/1.1" => {
+                ("200 OK", "application/json", running.clone().into())
+            }
+            "GET /v1/jobs HTTP/1.1" => ("200 OK", "application/json", list.clone().into()),
+            "POST /v1/jobs/job-01/cancel HTTP/1.1" => {
+                ("200 OK", "application/json", cancelled.clone().into())
+            }
+            "POST /v1/clips/3f2a/refine HTTP/1.1" => {
+                ("202 Accepted", "application/json", queued.clone().into())
+            }
+            other => panic!("unexpected {other}"),
+        },
+        5,
+    );
+    let text = |args: &[&str]| {
+        let mut all = vec!["--server", &server];
+        all.extend_from_slice(args);
+        let out = c4g(&all);
+        assert!(
+            out.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8(out.stdout).unwrap()
+    };
+    let job = text(&["job", "job-01"]);
+    assert!(job.starts_with("job-01\n"), "{job}");
+    for part in [
+        "running (attempt 2 of 3, worker w1)",
+        "step 3/30 denoising",
+        "history   attempt 1: worker w0 stopped responding",
+    ] {
+        assert!(job.contains(part), "{job}");
+    }
+    let jobs: serde_json::Value = serde_json::from_str(&text(&["--json", "jobs"])).unwrap();
+    assert_eq!(jobs["jobs"][0]["progress"]["step"], 3);
+    assert_eq!(text(&["cancel", "job-01"]), "cancelled job-01\n");
+    let queued: serde_json::Value =
+        serde_json::from_str(&text(&["--json", "refine", "3f2a", "--no-wait"])).unwrap();
+    assert_eq!(queued["state"], "queued");
+    let summary = text(&["refine", "3f2a", "--no-wait"]);
+    assert!(
+        summary.starts_with("job-01\n  clip      3f2a\n  state     queued"),
+        "{summary}"
+    );
+    handle.join().unwrap();
 }

@@ -6,7 +6,11 @@
 
 use std::sync::{Arc, Mutex};
 
-use c4g_client::{Client, Precision, RenderRequest, UploadOptions, UploadSource};
+use c4g_client::{
+    Client, Precision, RefineRequest, RenderRequest, Sampler, TrajectoryPreset, UploadOptions,
+    UploadSource,
+};
+use futures_util::StreamExt;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;
 use tokio::task::JoinHandle;
@@ -276,4 +280,159 @@ async fn error_bodies_that_are_not_the_apis_still_give_status_and_text() {
         }
         other => panic!("expected Api, got {other:?}"),
     }
+}
+
+const JOB: &str = r#"{"id": "job-01", "clip_id": "3f2a", "state": "queued", "attempt": 1,
+ "max_attempts": 3, "worker": null, "progress": null, "error": null, "history": [],
+ "request": {"steps": 4}, "result_frames": 0, "seconds": null, "created_at": 1, "updated_at": 1,
+ "cancel_requested": false}"#;
+
+#[tokio::test]
+async fn refine_posts_the_request_and_reads_the_queued_job() {
+    let (client, server) = fake(
+        "202 Accepted",
+        &[
+            ("content-type", "application/json"),
+            ("location", "/v1/jobs/job-01"),
+        ],
+        JOB.into(),
+    )
+    .await;
+    let request = RefineRequest {
+        trajectory: Some(
+            TrajectoryPreset::Orbit {
+                depth: 2.0,
+                angle_degrees: 20.0,
+            }
+            .to_json(),
+        ),
+        steps: Some(4),
+        sampler: Some(Sampler::Euler),
+        caption: Some("a bed".into()),
+        ..RefineRequest::default()
+    };
+    let job = client.refine("3f2a", &request).await.unwrap();
+    let recorded = server.await.unwrap();
+
+    assert_eq!(
+        recorded.request_line(),
+        "POST /v1/clips/3f2a/refine HTTP/1.1"
+    );
+    let body: serde_json::Value = serde_json::from_slice(&recorded.body).unwrap();
+    assert_eq!(
+        body,
+        serde_json::json!({
+            "trajectory": {"kind": "orbit", "depth": 2.0, "angle_degrees": 20.0},
+            "steps": 4, "sampler": "euler", "caption": "a bed"
+        })
+    );
+    assert_eq!(job.id, "job-01");
+    assert_eq!(job.state, "queued");
+    assert_eq!((job.attempt, job.max_attempts), (1, 3));
+    assert!(job.progress.is_none() && !job.is_terminal());
+    // The record re-serialises as the server sent it, nulls and unknown fields included.
+    let original: serde_json::Value = serde_json::from_str(JOB).unwrap();
+    assert_eq!(serde_json::to_value(&job).unwrap(), original);
+}
+
+#[tokio::test]
+async fn a_refinement_answered_other_than_202_is_malformed() {
+    let (client, server) = fake("200 OK", &[], JOB.into()).await;
+    let err = client
+        .refine("3f2a", &serde_json::json!({}))
+        .await
+        .unwrap_err();
+    server.await.unwrap();
+    assert!(matches!(err, c4g_client::Error::Malformed(_)), "{err}");
+}
+
+#[tokio::test]
+async fn cancel_posts_to_the_jobs_cancel_path() {
+    let (client, server) = fake(
+        "200 OK",
+        &[],
+        JOB.replace("\"queued\"", "\"cancelled\"").into(),
+    )
+    .await;
+    let job = client.cancel("job-01").await.unwrap();
+    let recorded = server.await.unwrap();
+    assert_eq!(
+        recorded.request_line(),
+        "POST /v1/jobs/job-01/cancel HTTP/1.1"
+    );
+    assert!(job.is_terminal());
+}
+
+#[tokio::test]
+async fn jobs_list_and_result_frames_by_query() {
+    let (client, server) = fake("200 OK", &[], format!("{{\"jobs\": [{JOB}]}}").into()).await;
+    let jobs = client.jobs().await.unwrap();
+    assert_eq!(
+        server.await.unwrap().request_line(),
+        "GET /v1/jobs HTTP/1.1"
+    );
+    assert_eq!(jobs.len(), 1);
+
+    let (client, server) = fake(
+        "200 OK",
+        &[("content-type", "image/png")],
+        b"\x89PNG".to_vec(),
+    )
+    .await;
+    let png = client.job_result_frame("job-01", 7).await.unwrap();
+    assert_eq!(
+        server.await.unwrap().request_line(),
+        "GET /v1/jobs/job-01/result?frame=7 HTTP/1.1"
+    );
+    assert_eq!(&png[..], b"\x89PNG");
+
+    let (client, server) = fake("200 OK", &[("content-type", "video/mp4")], vec![1, 2]).await;
+    let mp4 = client.job_result("job-01").await.unwrap();
+    assert_eq!(
+        server.await.unwrap().request_line(),
+        "GET /v1/jobs/job-01/result HTTP/1.1"
+    );
+    assert_eq!(&mp4[..], [1, 2]);
+}
+
+#[tokio::test]
+async fn job_events_ask_for_an_event_stream_and_end_with_the_job() {
+    let running = JOB.replace("\"queued\"", "\"running\"").replace('\n', "");
+    let done = JOB.replace("\"queued\"", "\"done\"").replace('\n', "");
+    let body = format!(
+        "event: job\ndata: {running}\n\n:\n\nevent: job\ndata: {done}\n\nevent: job\ndata: {running}\n\n"
+    );
+    let (client, server) = fake(
+        "200 OK",
+        &[("content-type", "text/event-stream")],
+        body.into(),
+    )
+    .await;
+    let states: Vec<String> = client
+        .job_events("job-01")
+        .map(|job| job.unwrap().state)
+        .collect()
+        .await;
+    let recorded = server.await.unwrap();
+    assert_eq!(
+        recorded.request_line(),
+        "GET /v1/jobs/job-01/events HTTP/1.1"
+    );
+    assert_eq!(recorded.header("accept").unwrap(), "text/event-stream");
+    assert_eq!(states, ["running", "done"]);
+}
+
+#[tokio::test]
+async fn job_events_of_an_unknown_job_are_one_error() {
+    let (client, server) = fake(
+        "404 Not Found",
+        &[("content-type", "application/json")],
+        br#"{"error": "no job x", "kind": "not_found"}"#.to_vec(),
+    )
+    .await;
+    let items: Vec<_> = client.job_events("x").collect().await;
+    server.await.unwrap();
+    assert_eq!(items.len(), 1);
+    let err = items.into_iter().next().unwrap().unwrap_err();
+    assert_eq!(err.kind(), Some("not_found"));
 }

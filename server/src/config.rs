@@ -92,6 +92,13 @@ pub struct Config {
     /// hardware GPU, the CPU rasterizer otherwise: Mesa's software Vulkan is slower than it).
     #[arg(long, env = "C4G_RENDERER", value_enum, default_value_t = RendererArg::Auto)]
     pub renderer: RendererArg,
+    /// Seconds a refinement worker may go without reporting progress before its job is taken
+    /// back (retried, or failed when out of attempts).
+    #[arg(long, env = "C4G_JOB_LEASE_S", default_value_t = 60.0)]
+    pub job_lease_s: f64,
+    /// Attempts a refinement job gets (a lost worker or a retryable failure uses one).
+    #[arg(long, env = "C4G_JOB_ATTEMPTS", default_value_t = 2)]
+    pub job_attempts: u32,
     /// The FFmpeg binary (ffprobe is looked up beside it, or on PATH).
     #[arg(long, env = "C4G_FFMPEG", default_value = "ffmpeg")]
     pub ffmpeg: PathBuf,

@@ -36,6 +36,7 @@ pub fn is_grpc(headers: &HeaderMap) -> bool {
 pub fn routes(state: AppState) -> tonic::service::Routes {
     let limit = state.config().limits().max_grpc_message_bytes;
     let state_for_health = state.clone();
+    let state_for_workers = state.clone();
     let service = C4gServer::new(Grpc { state })
         .max_decoding_message_size(limit)
         .max_encoding_message_size(usize::MAX);
@@ -48,7 +49,9 @@ pub fn routes(state: AppState) -> tonic::service::Routes {
         }
         reporter.set_serving::<C4gServer<Grpc>>().await;
     });
-    let mut routes = tonic::service::Routes::new(service).add_service(health);
+    let mut routes = tonic::service::Routes::new(service)
+        .add_service(crate::workers::service(state_for_workers))
+        .add_service(health);
     match tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(c4g_proto::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)

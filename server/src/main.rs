@@ -48,12 +48,23 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
         })
     };
     let server = tokio::spawn(
-        axum::serve(listener, router(state))
+        axum::serve(listener, router(state.clone()))
             .with_graceful_shutdown(shutdown_signal())
             .into_future(),
     );
     // A model that cannot load ends the process: a server that can never be ready helps nobody.
     loading.await??;
+    // Jobs whose worker went quiet go back to the queue (or fail) within a second of their lease.
+    if let Ok(service) = state.service() {
+        let service = service.clone();
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval(std::time::Duration::from_millis(500));
+            loop {
+                tick.tick().await;
+                service.jobs.reap();
+            }
+        });
+    }
     server.await??;
     Ok(())
 }

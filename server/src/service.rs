@@ -21,6 +21,7 @@ use tokio::sync::Semaphore;
 use crate::ApiError;
 use crate::config::{Config, Limits};
 use crate::intake::{self, IntakeOptions, IntakeTools, Media};
+use crate::jobs::JobStore;
 use crate::render::{CameraSpec, Renderer};
 use crate::store::{ClipRecord, ClipStore, NewClip, now};
 
@@ -41,6 +42,8 @@ pub struct Service {
     pub limits: Limits,
     /// FFmpeg and scratch space.
     pub tools: IntakeTools,
+    /// Refinement jobs.
+    pub jobs: JobStore,
     model_key: String,
     encode_slots: Arc<Semaphore>,
     job_slots: Arc<Semaphore>,
@@ -100,21 +103,28 @@ impl Service {
             config.cache_mib.saturating_mul(1 << 20),
         )
         .map_err(|e| e.to_string())?;
+        let jobs = JobStore::open(
+            &config.store_dir.join(&model_key).join("jobs"),
+            std::time::Duration::from_secs_f64(config.job_lease_s.max(0.1)),
+            config.job_attempts,
+        )
+        .map_err(|e| e.to_string())?;
         let renderer = Renderer::new(config.renderer)?;
-        let jobs = match config.max_concurrent_jobs {
+        let job_slots = match config.max_concurrent_jobs {
             0 => std::thread::available_parallelism().map_or(2, |n| n.get()),
             n => n,
         };
-        tracing::info!(renderer = renderer.name(), jobs, "service ready");
+        tracing::info!(renderer = renderer.name(), job_slots, "service ready");
         Ok(Self {
             engine,
             store,
             renderer,
             tools: IntakeTools::new(config.ffmpeg.clone(), config.store_dir.join("scratch")),
             limits,
+            jobs,
             model_key,
             encode_slots: Arc::new(Semaphore::new(config.max_concurrent_encodes.max(1))),
-            job_slots: Arc::new(Semaphore::new(jobs)),
+            job_slots: Arc::new(Semaphore::new(job_slots)),
             queued_jobs: AtomicUsize::new(0),
             max_queued_jobs: config.max_queued_jobs,
         })

@@ -4,6 +4,8 @@
 mod decode;
 mod delete;
 mod info;
+mod jobs;
+mod refine;
 mod render;
 mod stream;
 mod upload;
@@ -16,7 +18,8 @@ use c4g_client::{Client, Clip, Model};
 use clap::{Parser, Subcommand};
 use indicatif::HumanBytes;
 
-/// Talk to a c4g server: upload a clip, then decode, render and stream its 3D Gaussians.
+/// Talk to a c4g server: upload a clip, then decode, render and stream its 3D Gaussians, and
+/// refine novel views of it.
 #[derive(Debug, Parser)]
 #[command(name = "c4g", version)]
 pub struct Cli {
@@ -57,6 +60,15 @@ enum Command {
     Render(render::Args),
     /// Stream Gaussian sets over a time range (gRPC), to .ply files or one line per set.
     Stream(stream::Args),
+    /// Refine novel views with the video diffusion model: submit a job, follow it, and download
+    /// the refined video.
+    Refine(refine::Args),
+    /// Describe a refinement job.
+    Job(jobs::JobArgs),
+    /// List the refinement jobs.
+    Jobs,
+    /// Cancel a refinement job (a running one stops at its worker's next step).
+    Cancel(jobs::JobArgs),
 }
 
 /// What every command gets: the client and the output mode.
@@ -81,6 +93,10 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Export(args) => decode::export(&cx, args).await,
         Command::Render(args) => render::run(&cx, args).await,
         Command::Stream(args) => stream::run(&cx, args).await,
+        Command::Refine(args) => refine::run(&cx, args).await,
+        Command::Job(args) => jobs::job(&cx, args).await,
+        Command::Jobs => jobs::jobs(&cx).await,
+        Command::Cancel(args) => jobs::cancel(&cx, args).await,
     }
 }
 

@@ -155,7 +155,7 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
 
 /// A trajectory preset from `--trajectory`: JSON, or `@FILE`. Only its shape is checked here
 /// (an object with a `kind`); the server judges the preset.
-fn parse_trajectory(text: &str) -> anyhow::Result<serde_json::Value> {
+pub(super) fn parse_trajectory(text: &str) -> anyhow::Result<serde_json::Value> {
     let (json, origin) = match text.strip_prefix('@') {
         Some(path) => (
             std::fs::read_to_string(path).with_context(|| format!("reading {path}"))?,

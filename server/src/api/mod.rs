@@ -4,6 +4,7 @@ mod clips;
 mod docs;
 mod gaussians;
 mod health;
+mod jobs;
 mod json;
 pub(crate) mod models;
 mod render;
@@ -29,6 +30,12 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/clips/{id}/frames/{index}", get(clips::frame))
         .route("/v1/clips/{id}/gaussians", post(gaussians::decode))
         .route("/v1/clips/{id}/render", post(render::render))
+        .route("/v1/clips/{id}/refine", post(jobs::submit))
+        .route("/v1/jobs", get(jobs::list))
+        .route("/v1/jobs/{id}", get(jobs::get).delete(jobs::cancel))
+        .route("/v1/jobs/{id}/cancel", post(jobs::cancel))
+        .route("/v1/jobs/{id}/events", get(jobs::events))
+        .route("/v1/jobs/{id}/result", get(jobs::result))
         .with_state(state.clone());
     // The API key guards /v1 and gRPC; health, readiness, metrics and docs stay open.
     let guarded = rest

@@ -1,0 +1,98 @@
+//! `c4g-refiner`: the refinement worker. Loads a refiner package (merging a LoRA when given) and
+//! runs the jobs `c4g-server` queues, until stopped.
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+
+use c4g_refiner::worker::{WorkerConfig, run};
+use c4g_refiner::{LoraSpec, Pipeline, PipelineOptions};
+use clap::Parser;
+use tracing_subscriber::EnvFilter;
+
+/// Refine rendered novel views with Wan2.1-VACE, for a c4g-server.
+#[derive(Debug, Parser)]
+#[command(name = "c4g-refiner", version)]
+struct Args {
+    /// The server whose jobs to run.
+    #[arg(long, env = "C4G_SERVER", default_value = "http://127.0.0.1:8080")]
+    server: String,
+    /// The refiner package (refiner.json + ONNX graphs).
+    #[arg(
+        long,
+        env = "C4G_REFINER_PACKAGE",
+        default_value = "models/fixtures/wan-vace-tiny"
+    )]
+    package: PathBuf,
+    /// A LoRA (.safetensors, PEFT/diffusers or original Wan naming) merged into the weights at load.
+    #[arg(long, env = "C4G_REFINER_LORA")]
+    lora: Option<PathBuf>,
+    /// The LoRA's strength (multiplies its own alpha / rank scale).
+    #[arg(long, env = "C4G_REFINER_LORA_SCALE", default_value_t = 1.0)]
+    lora_scale: f32,
+    /// The server's API key, if it has one.
+    #[arg(long, env = "C4G_API_KEY", hide_env_values = true)]
+    api_key: Option<String>,
+    /// This worker's name in job records (default: host and process id).
+    #[arg(long, env = "C4G_WORKER_NAME")]
+    name: Option<String>,
+    /// ONNX Runtime intra-op threads (0: one per core).
+    #[arg(long, env = "C4G_INTRA_OP_THREADS", default_value_t = 0)]
+    intra_op_threads: usize,
+}
+
+#[tokio::main]
+async fn main() -> ExitCode {
+    let args = Args::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
+        .init();
+    let options = PipelineOptions {
+        lora: args.lora.clone().map(|path| LoraSpec {
+            path,
+            scale: args.lora_scale,
+        }),
+        intra_op_threads: args.intra_op_threads,
+        ..PipelineOptions::default()
+    };
+    let package = args.package.clone();
+    let pipeline =
+        match tokio::task::spawn_blocking(move || Pipeline::load(&package, &options)).await {
+            Ok(Ok(pipeline)) => Arc::new(pipeline),
+            Ok(Err(e)) => {
+                tracing::error!(
+                    "cannot load the refiner package {}: {e}",
+                    args.package.display()
+                );
+                return ExitCode::FAILURE;
+            }
+            Err(e) => {
+                tracing::error!("loading panicked: {e}");
+                return ExitCode::FAILURE;
+            }
+        };
+    let name = args.name.unwrap_or_else(|| {
+        let host = std::fs::read_to_string("/etc/hostname").unwrap_or_default();
+        format!("{}-{}", host.trim(), std::process::id())
+    });
+    let config = WorkerConfig {
+        server: args.server,
+        api_key: args.api_key,
+        name,
+    };
+    tokio::select! {
+        result = run(config, pipeline) => match result {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                tracing::error!("{e}");
+                ExitCode::FAILURE
+            }
+        },
+        _ = tokio::signal::ctrl_c() => ExitCode::SUCCESS,
+    }
+}

@@ -1,0 +1,267 @@
+//! The refiner package: `refiner.json` and the three graphs it names.
+//!
+//! A package is a directory made by the Python export (`models/python`): the VACE transformer,
+//! the VAE encoder and decoder, and the manifest that fixes the video size, the latent grid and
+//! the latent normalisation. Sizes are fixed per package: the graphs are exported for one
+//! `frames × height × width`.
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use crate::control::{LATENT_CHANNELS, SPATIAL_FACTOR, latent_frames};
+use crate::{RefinerError, Result};
+
+/// The `format` value of `refiner.json`.
+pub const FORMAT: &str = "c4g-refiner-package";
+/// The `format_version` this crate reads.
+pub const FORMAT_VERSION: u32 = 1;
+/// The manifest's file name.
+pub const MANIFEST_FILE: &str = "refiner.json";
+
+/// `refiner.json`.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+pub struct Manifest {
+    /// Always [`FORMAT`].
+    pub format: String,
+    /// Always [`FORMAT_VERSION`].
+    pub format_version: u32,
+    /// The package's name.
+    pub name: String,
+    /// Video frames per run (context frames first, then rendered frames).
+    pub frames: usize,
+    /// Frame height in pixels.
+    pub height: usize,
+    /// Frame width in pixels.
+    pub width: usize,
+    /// Frame rate the model was trained at.
+    #[serde(default)]
+    pub fps: Option<f64>,
+    /// The latent grid and its normalisation.
+    pub latent: LatentSpec,
+    /// Main-transformer layers that receive a VACE hint; one control scale per entry.
+    pub vace_layers: Vec<usize>,
+    /// The text-embedding input.
+    pub text: TextSpec,
+    /// The graphs, relative to the package directory.
+    pub files: Files,
+}
+
+/// The latent grid.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+pub struct LatentSpec {
+    /// Latent channels (16).
+    pub channels: usize,
+    /// Latent frames: `(frames + 3) / 4`.
+    pub frames: usize,
+    /// `height / 8`.
+    pub height: usize,
+    /// `width / 8`.
+    pub width: usize,
+    /// Per-channel mean of the VAE's latents.
+    pub mean: Vec<f32>,
+    /// Per-channel standard deviation of the VAE's latents.
+    pub std: Vec<f32>,
+}
+
+/// The text-embedding input: `[tokens, dim]` per prompt.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+pub struct TextSpec {
+    /// Tokens (padded with zeros to this length).
+    pub tokens: usize,
+    /// Embedding width.
+    pub dim: usize,
+}
+
+/// The graphs of the package.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+pub struct Files {
+    /// The VACE transformer: velocity from latents, timestep, text and control.
+    pub transformer: String,
+    /// Video to (un-normalised) latents.
+    pub vae_encoder: String,
+    /// (Un-normalised) latents to video.
+    pub vae_decoder: String,
+}
+
+impl Manifest {
+    /// Values per `[16, F', h, w]` latent tensor.
+    pub fn latent_len(&self) -> usize {
+        let l = &self.latent;
+        l.channels * l.frames * l.height * l.width
+    }
+
+    /// Values per `[H, W, 3]` frame.
+    pub fn frame_len(&self) -> usize {
+        self.height * self.width * 3
+    }
+
+    /// Values per `[L, D]` text embedding.
+    pub fn text_len(&self) -> usize {
+        self.text.tokens * self.text.dim
+    }
+
+    fn check(&self) -> std::result::Result<(), String> {
+        if self.format != FORMAT || self.format_version != FORMAT_VERSION {
+            return Err(format!(
+                "format {:?} version {}, expected {FORMAT:?} version {FORMAT_VERSION}",
+                self.format, self.format_version
+            ));
+        }
+        // The transformer patchifies 2 x 2 latent cells: pixels must tile 16 x 16.
+        let tile = 2 * SPATIAL_FACTOR;
+        let tiles = |side: usize| side > 0 && side.is_multiple_of(tile);
+        if self.frames == 0 || !tiles(self.height) || !tiles(self.width) {
+            return Err(format!(
+                "frames {} x {} x {} pixels: need at least one frame and sides divisible by {tile}",
+                self.frames, self.height, self.width
+            ));
+        }
+        let l = &self.latent;
+        let expected = (
+            LATENT_CHANNELS,
+            latent_frames(self.frames),
+            self.height / SPATIAL_FACTOR,
+            self.width / SPATIAL_FACTOR,
+        );
+        if (l.channels, l.frames, l.height, l.width) != expected {
+            return Err(format!(
+                "latent grid {:?} does not match the video (expected {expected:?})",
+                (l.channels, l.frames, l.height, l.width)
+            ));
+        }
+        if l.mean.len() != l.channels || l.std.len() != l.channels {
+            return Err(format!(
+                "latent mean and std need {} values each, have {} and {}",
+                l.channels,
+                l.mean.len(),
+                l.std.len()
+            ));
+        }
+        if l.std.iter().any(|s| !s.is_finite() || *s <= 0.0)
+            || l.mean.iter().any(|m| !m.is_finite())
+        {
+            return Err("latent mean must be finite and std positive".to_owned());
+        }
+        if self.vace_layers.is_empty() || self.text.tokens == 0 || self.text.dim == 0 {
+            return Err("vace_layers, text.tokens and text.dim must not be empty".to_owned());
+        }
+        Ok(())
+    }
+}
+
+/// A package on disk: its directory and manifest, checked.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Package {
+    dir: PathBuf,
+    manifest: Manifest,
+}
+
+impl Package {
+    /// Reads and checks `dir/refiner.json` and that the graphs it names exist.
+    pub fn open(dir: impl AsRef<Path>) -> Result<Self> {
+        let dir = dir.as_ref().to_path_buf();
+        let path = dir.join(MANIFEST_FILE);
+        let text = std::fs::read_to_string(&path).map_err(RefinerError::io(&path))?;
+        let manifest: Manifest =
+            serde_json::from_str(&text).map_err(|source| RefinerError::Json {
+                path: path.clone(),
+                source,
+            })?;
+        let invalid = |reason: String| RefinerError::InvalidPackage {
+            dir: dir.clone(),
+            reason,
+        };
+        manifest.check().map_err(invalid)?;
+        let files = &manifest.files;
+        for file in [&files.transformer, &files.vae_encoder, &files.vae_decoder] {
+            if !dir.join(file).is_file() {
+                return Err(invalid(format!("{file} is missing")));
+            }
+        }
+        Ok(Self { dir, manifest })
+    }
+
+    /// The package directory.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// The manifest.
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+
+    /// Path of the transformer graph.
+    pub fn transformer_path(&self) -> PathBuf {
+        self.dir.join(&self.manifest.files.transformer)
+    }
+
+    /// Path of the VAE encoder graph.
+    pub fn vae_encoder_path(&self) -> PathBuf {
+        self.dir.join(&self.manifest.files.vae_encoder)
+    }
+
+    /// Path of the VAE decoder graph.
+    pub fn vae_decoder_path(&self) -> PathBuf {
+        self.dir.join(&self.manifest.files.vae_decoder)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn manifest_json(frames: usize, latent_frames: usize) -> String {
+        format!(
+            r#"{{"format": "c4g-refiner-package", "format_version": 1, "name": "t",
+                "frames": {frames}, "height": 32, "width": 48, "fps": 16,
+                "latent": {{"channels": 16, "frames": {latent_frames}, "height": 4, "width": 6,
+                           "mean": {mean:?}, "std": {std:?}}},
+                "vace_layers": [0, 2], "text": {{"tokens": 8, "dim": 32}},
+                "files": {{"transformer": "transformer.onnx", "vae_encoder": "vae_encoder.onnx",
+                          "vae_decoder": "vae_decoder.onnx"}},
+                "weight_names": "diffusers", "extra": true}}"#,
+            mean = vec![0.0f32; 16],
+            std = vec![1.0f32; 16]
+        )
+    }
+
+    fn write_package(json: &str) -> tempfile::TempDir {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join(MANIFEST_FILE), json).unwrap();
+        for f in ["transformer.onnx", "vae_encoder.onnx", "vae_decoder.onnx"] {
+            std::fs::write(dir.path().join(f), b"").unwrap();
+        }
+        dir
+    }
+
+    #[test]
+    fn a_consistent_manifest_opens() {
+        let dir = write_package(&manifest_json(9, 3));
+        let p = Package::open(dir.path()).unwrap();
+        let m = p.manifest();
+        assert_eq!(
+            (m.frames, m.latent.frames, m.latent_len()),
+            (9, 3, 16 * 3 * 4 * 6)
+        );
+        assert_eq!(m.text_len(), 256);
+        assert!(p.transformer_path().ends_with("transformer.onnx"));
+    }
+
+    #[test]
+    fn a_latent_grid_that_does_not_match_the_video_is_refused() {
+        let dir = write_package(&manifest_json(9, 2));
+        let err = Package::open(dir.path()).unwrap_err();
+        assert!(matches!(err, RefinerError::InvalidPackage { .. }), "{err}");
+        assert!(err.to_string().contains("latent grid"), "{err}");
+    }
+
+    #[test]
+    fn a_missing_graph_is_named() {
+        let dir = write_package(&manifest_json(9, 3));
+        std::fs::remove_file(dir.path().join("vae_decoder.onnx")).unwrap();
+        let err = Package::open(dir.path()).unwrap_err();
+        assert!(err.to_string().contains("vae_decoder.onnx"), "{err}");
+    }
+}

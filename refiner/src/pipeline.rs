@@ -1,0 +1,517 @@
+//! The refinement pipeline: video and mask in, refined video out.
+//!
+//! One [`Pipeline::refine`] run is:
+//! 1. frames `[H, W, 3]` in [0, 1] → video `[3, F, H, W]` in [-1, 1];
+//! 2. the control tensor (`control`): the video split by the mask, both halves VAE-encoded and
+//!    normalised, plus the unshuffled mask;
+//! 3. noise (seeded, or given) denoised over the schedule: each step one transformer run
+//!    (two with classifier-free guidance: `v = v_u + g·(v_c − v_u)`), then the sampler;
+//! 4. the final latents un-normalised and VAE-decoded, back to frames in [0, 1].
+//!
+//! The graphs' sessions are created once at [`Pipeline::load`], the transformer's with the LoRA
+//! already merged into its weights.
+
+use std::ops::ControlFlow;
+use std::path::Path;
+use std::sync::{Mutex, MutexGuard, PoisonError};
+
+use ort::session::{Session, SessionOutputs};
+use ort::value::TensorRef;
+
+use crate::control::{self, LatentStats, Mask};
+use crate::lora::merge::merged_weights;
+use crate::lora::{Lora, LoraSpec};
+use crate::noise::gaussian_noise;
+use crate::onnx::OnnxWeights;
+use crate::package::{Manifest, Package};
+use crate::runtime::{
+    ExecutionProvider, SessionConfig, create_session, create_session_with_weights,
+};
+use crate::sampler::{Sampler, Schedule, Solver};
+use crate::{RefinerError, Result};
+
+/// How a [`Pipeline`] is built.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct PipelineOptions {
+    /// A LoRA merged into the transformer at load.
+    pub lora: Option<LoraSpec>,
+    /// Threads ONNX Runtime may use inside one operator; 0 leaves its default (one per core).
+    pub intra_op_threads: usize,
+    /// Where the graphs run.
+    pub execution_provider: ExecutionProvider,
+    /// Keep ONNX Runtime's CPU memory arena (faster repeated runs, memory held at its peak).
+    pub cpu_arena: bool,
+}
+
+/// One refinement.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RefineRequest {
+    /// `F` frames, each `[H, W, 3]` RGB in [0, 1], row-major: context frames first, then the
+    /// rendered frames to regenerate.
+    pub video: Vec<Vec<f32>>,
+    /// Which frames (or pixels) to regenerate.
+    pub mask: Mask,
+    /// The prompt's text embedding, `[L, D]` (zero-padded to L tokens).
+    pub text_embeddings: Vec<f32>,
+    /// The negative prompt's embedding, `[L, D]`; needed when `guidance != 1`.
+    pub negative_embeddings: Option<Vec<f32>>,
+    /// Denoising steps.
+    pub steps: usize,
+    /// Timestep shift of the schedule.
+    pub shift: f64,
+    /// Classifier-free guidance scale: any value but 1 runs the transformer twice per step
+    /// (diffusers skips guidance for every value ≤ 1; we apply the formula as given).
+    pub guidance: f32,
+    /// Scale of the VACE hints, the same for every VACE layer.
+    pub control_scale: f32,
+    /// The solver, on the schedule the reference pipeline gives it
+    /// ([`Schedule::for_sampler`]).
+    pub sampler: Sampler,
+    /// Seed of the initial noise (see [`gaussian_noise`](crate::gaussian_noise)).
+    pub seed: u64,
+    /// Initial noise `[16, F', h, w]` to use instead of the seeded noise.
+    pub initial_noise: Option<Vec<f32>>,
+}
+
+impl RefineRequest {
+    /// A request with the reference pipeline's defaults: 30 UniPC steps, shift 3, guidance 5,
+    /// control scale 1, seed 0.
+    pub fn new(video: Vec<Vec<f32>>, mask: Mask, text_embeddings: Vec<f32>) -> Self {
+        Self {
+            video,
+            mask,
+            text_embeddings,
+            negative_embeddings: None,
+            steps: 30,
+            shift: 3.0,
+            guidance: 5.0,
+            control_scale: 1.0,
+            sampler: Sampler::UniPc,
+            seed: 0,
+            initial_noise: None,
+        }
+    }
+
+    fn uses_guidance(&self) -> bool {
+        self.guidance != 1.0
+    }
+}
+
+/// What a refinement returns.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RefineOutput {
+    /// `F` frames, each `[H, W, 3]` RGB in [0, 1].
+    pub frames: Vec<Vec<f32>>,
+    /// The final normalised latents `[16, F', h, w]`, before the VAE decoder.
+    pub latents: Vec<f32>,
+}
+
+/// A loaded package: three sessions and the latent statistics.
+pub struct Pipeline {
+    package: Package,
+    stats: LatentStats,
+    transformer: Mutex<Session>,
+    vae_encoder: Mutex<Session>,
+    vae_decoder: Mutex<Session>,
+    merged_weights: usize,
+}
+
+impl std::fmt::Debug for Pipeline {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Pipeline")
+            .field("package", &self.package.dir())
+            .field("merged_weights", &self.merged_weights)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Pipeline {
+    /// Opens the package in `dir`, merges the LoRA (if any) and creates the sessions.
+    ///
+    /// Fails naming the key when a LoRA tensor cannot be placed on the transformer.
+    pub fn load(dir: impl AsRef<Path>, options: &PipelineOptions) -> Result<Self> {
+        let package = Package::open(dir)?;
+        let m = package.manifest();
+        let stats = LatentStats::new(m.latent.mean.clone(), &m.latent.std)?;
+        let config = SessionConfig {
+            intra_op_threads: options.intra_op_threads,
+            execution_provider: options.execution_provider,
+            cpu_arena: options.cpu_arena,
+        };
+        let transformer_path = package.transformer_path();
+        let (transformer, merged) = match &options.lora {
+            Some(spec) => {
+                let lora = Lora::load(&spec.path)?;
+                let weights = OnnxWeights::open(&transformer_path)?;
+                let merged = merged_weights(&lora, &weights, spec.scale)?;
+                let count = merged.len();
+                let session =
+                    create_session_with_weights(&transformer_path, config, &weights, merged)?;
+                (session, count)
+            }
+            None => (create_session(&transformer_path, config)?, 0),
+        };
+        let vae_encoder = create_session(&package.vae_encoder_path(), config)?;
+        let vae_decoder = create_session(&package.vae_decoder_path(), config)?;
+        Ok(Self {
+            package,
+            stats,
+            transformer: Mutex::new(transformer),
+            vae_encoder: Mutex::new(vae_encoder),
+            vae_decoder: Mutex::new(vae_decoder),
+            merged_weights: merged,
+        })
+    }
+
+    /// The package.
+    pub fn package(&self) -> &Package {
+        &self.package
+    }
+
+    /// The package's manifest.
+    pub fn manifest(&self) -> &Manifest {
+        self.package.manifest()
+    }
+
+    /// How many transformer weights the LoRA replaced (0 without a LoRA or at scale 0).
+    pub fn merged_weight_count(&self) -> usize {
+        self.merged_weights
+    }
+
+    /// Refines `request.video`, calling `progress(done, total)` with `done = 0` once the control
+    /// input is ready and after each denoising step; `ControlFlow::Break` stops the run with
+    /// [`RefinerError::Cancelled`].
+    pub fn refine(
+        &self,
+        request: &RefineRequest,
+        progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
+    ) -> Result<RefineOutput> {
+        self.check_request(request)?;
+        let schedule = Schedule::for_sampler(request.sampler, request.steps, request.shift)?;
+        let total = schedule.steps();
+        let control = self.control(&request.video, &request.mask)?;
+        if progress(0, total).is_break() {
+            return Err(RefinerError::Cancelled {
+                completed: 0,
+                total,
+            });
+        }
+        let mut latents = match &request.initial_noise {
+            Some(noise) => noise.clone(),
+            None => gaussian_noise(request.seed, self.manifest().latent_len()),
+        };
+        let scales = vec![request.control_scale; self.manifest().vace_layers.len()];
+        let timesteps = schedule.timesteps().to_vec();
+        let mut solver = Solver::new(request.sampler, schedule);
+        for (i, &t) in timesteps.iter().enumerate() {
+            let velocity = self.guided_velocity(request, &latents, t, &control, &scales)?;
+            latents = solver.step(&velocity, &latents)?;
+            if progress(i + 1, total).is_break() {
+                return Err(RefinerError::Cancelled {
+                    completed: i + 1,
+                    total,
+                });
+            }
+        }
+        let frames = self.decode(&latents)?;
+        Ok(RefineOutput { frames, latents })
+    }
+
+    /// `v_u + g·(v_c − v_u)`, or just `v_c` at `g = 1`.
+    fn guided_velocity(
+        &self,
+        request: &RefineRequest,
+        latents: &[f32],
+        timestep: f32,
+        control: &[f32],
+        scales: &[f32],
+    ) -> Result<Vec<f32>> {
+        let cond = self.velocity(latents, timestep, &request.text_embeddings, control, scales)?;
+        let Some(negative) = request
+            .negative_embeddings
+            .as_deref()
+            .filter(|_| request.uses_guidance())
+        else {
+            return Ok(cond);
+        };
+        let uncond = self.velocity(latents, timestep, negative, control, scales)?;
+        let g = request.guidance;
+        Ok(uncond
+            .iter()
+            .zip(&cond)
+            .map(|(&u, &c)| u + g * (c - u))
+            .collect())
+    }
+
+    /// The `[96, F', h, w]` control tensor for `video` (frames `[H, W, 3]` in [0, 1]) and `mask`.
+    pub fn control(&self, video: &[Vec<f32>], mask: &Mask) -> Result<Vec<f32>> {
+        let m = self.manifest();
+        let (f, h, w) = (m.frames, m.height, m.width);
+        let video = to_model_video(video, f, h, w)?;
+        let mask = mask.to_pixels(f, h, w)?;
+        let (inactive, reactive) = control::split_video(&video, &mask);
+        let mut inactive = self.vae_encode(&inactive)?;
+        let mut reactive = self.vae_encode(&reactive)?;
+        self.stats.normalize(&mut inactive);
+        self.stats.normalize(&mut reactive);
+        let mask = control::latent_mask(&mask, f, h, w);
+        Ok(control::assemble(&inactive, &reactive, &mask))
+    }
+
+    /// VAE-encodes a `[3, F, H, W]` video in [-1, 1] to un-normalised latents `[16, F', h, w]`
+    /// (the posterior mode).
+    pub fn vae_encode(&self, video: &[f32]) -> Result<Vec<f32>> {
+        let m = self.manifest();
+        let shape = [1, 3, m.frames, m.height, m.width];
+        check_len("video", video.len(), &shape)?;
+        let input = tensor("video", &shape, video)?;
+        let mut session = lock(&self.vae_encoder);
+        let outputs = session
+            .run(ort::inputs!["video" => input])
+            .map_err(RefinerError::ort("running the VAE encoder"))?;
+        Ok(output(&outputs, "VAE encoder", "latents", &self.latent_shape())?.to_vec())
+    }
+
+    /// One transformer run: the velocity at `latents` (normalised, `[16, F', h, w]`) and
+    /// `timestep`, for one text embedding `[L, D]`, the control tensor and one scale per VACE
+    /// layer.
+    pub fn velocity(
+        &self,
+        latents: &[f32],
+        timestep: f32,
+        text_embeddings: &[f32],
+        control: &[f32],
+        control_scales: &[f32],
+    ) -> Result<Vec<f32>> {
+        let m = self.manifest();
+        let latent_shape = self.latent_shape();
+        let text_shape = [1, m.text.tokens, m.text.dim];
+        let l = &m.latent;
+        let control_shape = [1, control::CONTROL_CHANNELS, l.frames, l.height, l.width];
+        let scale_shape = [m.vace_layers.len()];
+        check_len("latents", latents.len(), &latent_shape)?;
+        check_len("text embedding", text_embeddings.len(), &text_shape)?;
+        check_len("control", control.len(), &control_shape)?;
+        check_len("control scales", control_scales.len(), &scale_shape)?;
+        let timestep = [timestep];
+        let inputs = ort::inputs![
+            "latents" => tensor("latents", &latent_shape, latents)?,
+            "timestep" => tensor("timestep", &[1], &timestep)?,
+            "text_embeddings" => tensor("text_embeddings", &text_shape, text_embeddings)?,
+            "control" => tensor("control", &control_shape, control)?,
+            "control_scale" => tensor("control_scale", &scale_shape, control_scales)?,
+        ];
+        let mut session = lock(&self.transformer);
+        let outputs = session
+            .run(inputs)
+            .map_err(RefinerError::ort("running the transformer"))?;
+        Ok(output(&outputs, "transformer", "velocity", &latent_shape)?.to_vec())
+    }
+
+    /// Un-normalises `latents` (`[16, F', h, w]`), VAE-decodes them and returns `F` frames
+    /// `[H, W, 3]` in [0, 1].
+    pub fn decode(&self, latents: &[f32]) -> Result<Vec<Vec<f32>>> {
+        let mut raw = latents.to_vec();
+        self.stats.denormalize(&mut raw);
+        let video = self.vae_decode(&raw)?;
+        let m = self.manifest();
+        Ok(to_frames(&video, m.frames, m.height, m.width))
+    }
+
+    /// VAE-decodes un-normalised latents `[16, F', h, w]` to a `[3, F, H, W]` video (about
+    /// [-1, 1], not clamped).
+    pub fn vae_decode(&self, latents: &[f32]) -> Result<Vec<f32>> {
+        let m = self.manifest();
+        let latent_shape = self.latent_shape();
+        check_len("latents", latents.len(), &latent_shape)?;
+        let input = tensor("latents", &latent_shape, latents)?;
+        let mut session = lock(&self.vae_decoder);
+        let outputs = session
+            .run(ort::inputs!["latents" => input])
+            .map_err(RefinerError::ort("running the VAE decoder"))?;
+        let shape = [1, 3, m.frames, m.height, m.width];
+        Ok(output(&outputs, "VAE decoder", "video", &shape)?.to_vec())
+    }
+
+    fn latent_shape(&self) -> [usize; 5] {
+        let l = &self.manifest().latent;
+        [1, l.channels, l.frames, l.height, l.width]
+    }
+
+    fn check_request(&self, r: &RefineRequest) -> Result<()> {
+        let m = self.manifest();
+        let invalid = |reason: String| Err(RefinerError::InvalidRequest(reason));
+        if r.text_embeddings.len() != m.text_len() {
+            return invalid(format!(
+                "text_embeddings has {} values, the package takes [{}, {}]",
+                r.text_embeddings.len(),
+                m.text.tokens,
+                m.text.dim
+            ));
+        }
+        match &r.negative_embeddings {
+            Some(n) if n.len() != m.text_len() => {
+                return invalid(format!(
+                    "negative_embeddings has {} values, the package takes [{}, {}]",
+                    n.len(),
+                    m.text.tokens,
+                    m.text.dim
+                ));
+            }
+            None if r.uses_guidance() => {
+                return invalid(format!(
+                    "guidance {} needs negative_embeddings (the text encoder's output for the negative prompt); use guidance 1 to run without",
+                    r.guidance
+                ));
+            }
+            _ => {}
+        }
+        if !r.guidance.is_finite() || !r.control_scale.is_finite() {
+            return invalid("guidance and control_scale must be finite".to_owned());
+        }
+        if let Some(noise) = &r.initial_noise
+            && noise.len() != m.latent_len()
+        {
+            return invalid(format!(
+                "initial_noise has {} values, the latents are [{}, {}, {}, {}]",
+                noise.len(),
+                m.latent.channels,
+                m.latent.frames,
+                m.latent.height,
+                m.latent.width
+            ));
+        }
+        let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
+        if !finite(&r.text_embeddings)
+            || !r.negative_embeddings.as_deref().is_none_or(finite)
+            || !r.initial_noise.as_deref().is_none_or(finite)
+        {
+            return invalid("embeddings and noise must be finite".to_owned());
+        }
+        Ok(())
+    }
+}
+
+/// Frames `[H, W, 3]` in [0, 1] → `[3, F, H, W]` in [-1, 1].
+fn to_model_video(frames: &[Vec<f32>], f: usize, h: usize, w: usize) -> Result<Vec<f32>> {
+    if frames.len() != f {
+        return Err(RefinerError::InvalidRequest(format!(
+            "video has {} frames, the package takes {f}",
+            frames.len()
+        )));
+    }
+    let plane = h * w;
+    let mut out = vec![0.0; 3 * f * plane];
+    for (t, frame) in frames.iter().enumerate() {
+        if frame.len() != 3 * plane {
+            return Err(RefinerError::InvalidRequest(format!(
+                "frame {t} has {} values, expected {h} x {w} x 3",
+                frame.len()
+            )));
+        }
+        if let Some(v) = frame.iter().find(|v| !v.is_finite()) {
+            return Err(RefinerError::InvalidRequest(format!(
+                "frame {t} holds the non-finite value {v}"
+            )));
+        }
+        for (p, rgb) in frame.chunks_exact(3).enumerate() {
+            for (c, &v) in rgb.iter().enumerate() {
+                out[(c * f + t) * plane + p] = v * 2.0 - 1.0;
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// `[3, F, H, W]` in [-1, 1] → frames `[H, W, 3]` in [0, 1], clamped.
+fn to_frames(video: &[f32], f: usize, h: usize, w: usize) -> Vec<Vec<f32>> {
+    let plane = h * w;
+    (0..f)
+        .map(|t| {
+            (0..plane)
+                .flat_map(|p| {
+                    (0..3)
+                        .map(move |c| (video[(c * f + t) * plane + p] * 0.5 + 0.5).clamp(0.0, 1.0))
+                })
+                .collect()
+        })
+        .collect()
+}
+
+fn check_len(what: &str, len: usize, shape: &[usize]) -> Result<()> {
+    if len == shape.iter().product::<usize>() {
+        Ok(())
+    } else {
+        Err(RefinerError::InvalidRequest(format!(
+            "{what} has {len} values, expected shape {shape:?}"
+        )))
+    }
+}
+
+fn tensor<'a>(what: &str, shape: &[usize], data: &'a [f32]) -> Result<TensorRef<'a, f32>> {
+    TensorRef::from_array_view((shape.to_vec(), data))
+        .map_err(RefinerError::ort(format!("preparing the {what} tensor")))
+}
+
+fn lock(session: &Mutex<Session>) -> MutexGuard<'_, Session> {
+    // A panic while a run held the lock leaves the session itself intact.
+    session.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// The named f32 output of a run, checked against its expected shape.
+fn output<'o>(
+    outputs: &'o SessionOutputs<'_>,
+    graph: &str,
+    name: &str,
+    expected: &[usize],
+) -> Result<&'o [f32]> {
+    let value = outputs
+        .get(name)
+        .ok_or_else(|| RefinerError::ModelOutput(format!("the {graph} returned no {name:?}")))?;
+    let (shape, data) = value
+        .try_extract_tensor::<f32>()
+        .map_err(RefinerError::ort(format!("reading the {graph}'s {name:?}")))?;
+    let matches = shape.len() == expected.len()
+        && shape
+            .iter()
+            .zip(expected)
+            .all(|(&d, &e)| usize::try_from(d) == Ok(e));
+    if !matches {
+        return Err(RefinerError::ModelOutput(format!(
+            "the {graph}'s {name:?} has shape {:?}, expected {expected:?}",
+            &**shape
+        )));
+    }
+    Ok(data)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frames_go_to_channel_first_minus_one_to_one_and_back() {
+        let (f, h, w) = (2, 1, 2);
+        let frames = vec![
+            vec![0.0, 0.5, 1.0, 0.25, 0.75, 0.5],
+            vec![1.0, 1.0, 1.0, 0.0, 0.0, 0.0],
+        ];
+        let video = to_model_video(&frames, f, h, w).unwrap();
+        // Channel 0 (R) of frame 0, then of frame 1, then G, then B.
+        assert_eq!(
+            video,
+            vec![
+                -1.0, -0.5, 1.0, -1.0, 0.0, 0.5, 1.0, -1.0, 1.0, 0.0, 1.0, -1.0
+            ]
+        );
+        assert_eq!(to_frames(&video, f, h, w), frames);
+        assert!(to_model_video(&frames[..1], f, h, w).is_err());
+        assert!(to_model_video(&[vec![f32::NAN; 6], vec![0.0; 6]], f, h, w).is_err());
+    }
+
+    #[test]
+    fn decoded_values_are_clamped_to_the_unit_range() {
+        let frames = to_frames(&[-3.0, 3.0, 0.0], 1, 1, 1);
+        assert_eq!(frames, vec![vec![0.0, 1.0, 0.5]]);
+    }
+}

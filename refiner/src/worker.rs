@@ -1,0 +1,395 @@
+//! The worker: pulls refinement jobs from `c4g-server` (gRPC `c4g.v1.Jobs`), runs the pipeline,
+//! reports progress after every denoising step (its heartbeat, and how it learns of a
+//! cancellation), and sends back the refined novel views.
+//!
+//! A worker that dies mid-job simply stops reporting: the server's lease on the job runs out and
+//! the job is retried on another attempt or failed. Nothing here has to clean up after a crash.
+
+use std::ops::ControlFlow;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use c4g_proto::v1 as pb;
+use c4g_proto::v1::jobs_client::JobsClient;
+use image::RgbImage;
+use image::imageops::FilterType;
+use tonic::metadata::MetadataValue;
+use tonic::service::Interceptor;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::Channel;
+
+use crate::{ErrorKind, Mask, Pipeline, RefineRequest, RefinerError, Sampler};
+
+/// How long one `Take` waits for a job before asking again.
+const TAKE_WAIT: Duration = Duration::from_secs(20);
+/// Pause after a failed call to the server before trying again.
+const RECONNECT_PAUSE: Duration = Duration::from_secs(1);
+
+/// Adds the API key to every call.
+#[derive(Clone)]
+pub struct Auth(Option<MetadataValue<tonic::metadata::Ascii>>);
+
+impl Interceptor for Auth {
+    fn call(
+        &mut self,
+        mut request: tonic::Request<()>,
+    ) -> Result<tonic::Request<()>, tonic::Status> {
+        if let Some(value) = &self.0 {
+            request
+                .metadata_mut()
+                .insert("authorization", value.clone());
+        }
+        Ok(request)
+    }
+}
+
+type Client = JobsClient<InterceptedService<Channel, Auth>>;
+
+/// A worker's settings.
+#[derive(Debug, Clone)]
+pub struct WorkerConfig {
+    /// The server, e.g. `http://127.0.0.1:8080`.
+    pub server: String,
+    /// The API key, if the server wants one.
+    pub api_key: Option<String>,
+    /// How this worker names itself in job records.
+    pub name: String,
+}
+
+/// Runs jobs until the process is stopped.
+pub async fn run(config: WorkerConfig, pipeline: Arc<Pipeline>) -> Result<(), String> {
+    let auth = match &config.api_key {
+        Some(key) => Some(
+            format!("Bearer {key}")
+                .parse()
+                .map_err(|_| "the API key must be printable ASCII".to_owned())?,
+        ),
+        None => None,
+    };
+    let channel = tonic::transport::Endpoint::from_shared(config.server.clone())
+        .map_err(|e| format!("bad server address {}: {e}", config.server))?
+        .connect_lazy();
+    let mut client = JobsClient::with_interceptor(channel, Auth(auth))
+        .max_decoding_message_size(usize::MAX)
+        .max_encoding_message_size(usize::MAX);
+    let m = pipeline.package().manifest();
+    tracing::info!(server = %config.server, worker = %config.name, model = %m.name, "worker started");
+    loop {
+        let take = client
+            .take(pb::TakeRequest {
+                worker: config.name.clone(),
+                wait_ms: TAKE_WAIT.as_millis() as u32,
+                frames: m.frames as u32,
+                width: m.width as u32,
+                height: m.height as u32,
+            })
+            .await;
+        let job = match take {
+            Ok(response) => response.into_inner().job,
+            Err(status) if status.code() == tonic::Code::Unauthenticated => {
+                return Err(format!(
+                    "the server refused this worker: {}",
+                    status.message()
+                ));
+            }
+            Err(status) => {
+                tracing::warn!("cannot reach the server: {}", status.message());
+                tokio::time::sleep(RECONNECT_PAUSE).await;
+                continue;
+            }
+        };
+        if let Some(job) = job {
+            run_job(&mut client, &config.name, &pipeline, job).await;
+        }
+    }
+}
+
+async fn run_job(client: &mut Client, worker: &str, pipeline: &Arc<Pipeline>, job: pb::RefineJob) {
+    let id = job.job_id.clone();
+    tracing::info!(job = %id, attempt = job.attempt, frames = job.frames.len(), "job started");
+    let started = Instant::now();
+    let outcome = match request(pipeline, &job) {
+        Ok(request) => {
+            refine(
+                client.clone(),
+                worker,
+                pipeline.clone(),
+                id.clone(),
+                request,
+            )
+            .await
+        }
+        Err(e) => Err(e),
+    };
+    let report = match outcome {
+        Ok(frames) => {
+            let reactive: Vec<Vec<u8>> = frames
+                .into_iter()
+                .zip(&job.reactive)
+                .filter(|(_, reactive)| **reactive)
+                .map(|(png, _)| png)
+                .collect();
+            let messages = std::iter::once(pb::FinishRequest {
+                part: Some(pb::finish_request::Part::Header(pb::FinishHeader {
+                    job_id: id.clone(),
+                    worker: worker.to_owned(),
+                    frames: reactive.len() as u32,
+                    seconds: started.elapsed().as_secs_f64(),
+                })),
+            })
+            .chain(reactive.into_iter().map(|png| pb::FinishRequest {
+                part: Some(pb::finish_request::Part::FramePng(png)),
+            }))
+            .collect::<Vec<_>>();
+            client
+                .finish(tokio_stream::iter(messages))
+                .await
+                .map(|_| "done")
+        }
+        Err(e) => {
+            let cancelled = e.kind() == ErrorKind::Cancelled;
+            // Bad input fails for good; a runtime or model failure may pass on another attempt.
+            let retryable = matches!(e.kind(), ErrorKind::Runtime | ErrorKind::ModelOutput);
+            client
+                .fail(pb::FailRequest {
+                    job_id: id.clone(),
+                    worker: worker.to_owned(),
+                    error: e.to_string(),
+                    retryable,
+                    cancelled,
+                })
+                .await
+                .map(|_| if cancelled { "cancelled" } else { "failed" })
+        }
+    };
+    match report {
+        Ok(what) => {
+            tracing::info!(job = %id, seconds = started.elapsed().as_secs_f64(), "job {what}")
+        }
+        // The server no longer counts this worker as the job's owner (its lease ran out, or the
+        // server restarted): the job's record already says what happens next.
+        Err(status) => {
+            tracing::warn!(job = %id, "the server did not take the report: {}", status.message())
+        }
+    }
+}
+
+/// Runs the pipeline on a blocking thread, reporting each step.
+async fn refine(
+    client: Client,
+    worker: &str,
+    pipeline: Arc<Pipeline>,
+    id: String,
+    request: RefineRequest,
+) -> Result<Vec<Vec<u8>>, RefinerError> {
+    let handle = tokio::runtime::Handle::current();
+    let worker = worker.to_owned();
+    let (height, width) = {
+        let m = pipeline.package().manifest();
+        (m.height, m.width)
+    };
+    tokio::task::spawn_blocking(move || {
+        let mut client = client;
+        let mut progress = |step: usize, steps: usize| {
+            let report = pb::ProgressRequest {
+                job_id: id.clone(),
+                worker: worker.clone(),
+                step: step as u32,
+                steps: steps as u32,
+                stage: "denoising".into(),
+            };
+            match handle.block_on(client.progress(report)) {
+                Ok(answer) if answer.get_ref().cancelled => ControlFlow::Break(()),
+                Ok(_) => ControlFlow::Continue(()),
+                // The job is no longer ours: stop spending compute on it.
+                Err(status) if status.code() == tonic::Code::InvalidArgument => {
+                    ControlFlow::Break(())
+                }
+                // The server is unreachable for a moment: keep going; the lease decides.
+                Err(_) => ControlFlow::Continue(()),
+            }
+        };
+        let output = pipeline.refine(&request, &mut progress)?;
+        output
+            .frames
+            .iter()
+            .map(|frame| to_png(frame, width, height))
+            .collect()
+    })
+    .await
+    .map_err(|e| RefinerError::ModelOutput(format!("the refinement thread panicked: {e}")))?
+}
+
+/// The pipeline request for a job: frames fitted to the model's size, mask, prompt, settings.
+fn request(pipeline: &Pipeline, job: &pb::RefineJob) -> Result<RefineRequest, RefinerError> {
+    let m = pipeline.package().manifest();
+    if job.frames.len() != m.frames || job.reactive.len() != m.frames {
+        return Err(RefinerError::InvalidRequest(format!(
+            "the job has {} frames; this worker's model takes {}",
+            job.frames.len(),
+            m.frames
+        )));
+    }
+    let video = job
+        .frames
+        .iter()
+        .map(|frame| {
+            let image = image::load_from_memory(&frame.png)
+                .map_err(|e| {
+                    RefinerError::InvalidRequest(format!("a job frame is unreadable: {e}"))
+                })?
+                .to_rgb8();
+            Ok(to_unit(&fit(&image, m.width as u32, m.height as u32)))
+        })
+        .collect::<Result<Vec<_>, RefinerError>>()?;
+    let text_len = m.text.tokens * m.text.dim;
+    let text = embedding(
+        &job.text_embedding,
+        job.text_tokens as usize,
+        m.text.tokens,
+        m.text.dim,
+    )?;
+    let negative = embedding(
+        &job.negative_embedding,
+        job.text_tokens as usize,
+        m.text.tokens,
+        m.text.dim,
+    )?;
+    if text.is_none() && !job.caption.is_empty() {
+        tracing::warn!(
+            job = %job.job_id,
+            "this worker has no text encoder: the caption is ignored (send text_embedding)"
+        );
+    }
+    let params: serde_json::Value = serde_json::from_str(&job.params_json)
+        .map_err(|e| RefinerError::InvalidRequest(format!("bad job parameters: {e}")))?;
+    let mut request = RefineRequest::new(
+        video,
+        Mask::Frames(job.reactive.clone()),
+        text.unwrap_or_else(|| vec![0.0; text_len]),
+    );
+    request.negative_embeddings = Some(negative.unwrap_or_else(|| vec![0.0; text_len]));
+    if let Some(steps) = params["steps"].as_u64() {
+        request.steps = steps as usize;
+    }
+    if let Some(shift) = params["shift"].as_f64() {
+        request.shift = shift;
+    }
+    if let Some(guidance) = params["guidance"].as_f64() {
+        request.guidance = guidance as f32;
+    }
+    if let Some(scale) = params["control_scale"].as_f64() {
+        request.control_scale = scale as f32;
+    }
+    if let Some(seed) = params["seed"].as_u64() {
+        request.seed = seed;
+    }
+    request.sampler = match params["sampler"].as_str() {
+        Some("euler") => Sampler::Euler,
+        _ => Sampler::UniPc,
+    };
+    Ok(request)
+}
+
+/// A prompt embedding of `tokens` rows zero-padded to the model's `max_tokens` (as the reference
+/// pipeline pads its text encoder's output); `None` when the job has none.
+fn embedding(
+    bytes: &[u8],
+    tokens: usize,
+    max_tokens: usize,
+    dim: usize,
+) -> Result<Option<Vec<f32>>, RefinerError> {
+    if bytes.is_empty() {
+        return Ok(None);
+    }
+    let values: Vec<f32> = bytes
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
+    if tokens == 0 || tokens > max_tokens || values.len() != tokens * dim {
+        return Err(RefinerError::InvalidRequest(format!(
+            "the text embedding has {} numbers for {tokens} tokens; this model takes up to \
+             {max_tokens} tokens of {dim}",
+            values.len()
+        )));
+    }
+    let mut padded = values;
+    padded.resize(max_tokens * dim, 0.0);
+    Ok(Some(padded))
+}
+
+/// The frame cropped to the model's aspect ratio about its centre, then resized (Lanczos).
+fn fit(image: &RgbImage, width: u32, height: u32) -> RgbImage {
+    let (w, h) = image.dimensions();
+    if (w, h) == (width, height) {
+        return image.clone();
+    }
+    let target = f64::from(width) / f64::from(height);
+    let (cw, ch) = if f64::from(w) / f64::from(h) > target {
+        (((f64::from(h) * target).round() as u32).clamp(1, w), h)
+    } else {
+        (w, ((f64::from(w) / target).round() as u32).clamp(1, h))
+    };
+    let cropped = image::imageops::crop_imm(image, (w - cw) / 2, (h - ch) / 2, cw, ch).to_image();
+    image::imageops::resize(&cropped, width, height, FilterType::Lanczos3)
+}
+
+fn to_unit(image: &RgbImage) -> Vec<f32> {
+    image
+        .as_raw()
+        .iter()
+        .map(|v| f32::from(*v) / 255.0)
+        .collect()
+}
+
+fn to_png(frame: &[f32], width: usize, height: usize) -> Result<Vec<u8>, RefinerError> {
+    let bytes: Vec<u8> = frame
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect();
+    let image = RgbImage::from_raw(width as u32, height as u32, bytes)
+        .ok_or_else(|| RefinerError::ModelOutput("a refined frame has the wrong size".into()))?;
+    let mut png = Vec::new();
+    image
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .map_err(|e| RefinerError::ModelOutput(format!("PNG encoding failed: {e}")))?;
+    Ok(png)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn frames_are_centre_cropped_to_the_models_aspect_then_resized() {
+        let mut image = RgbImage::new(40, 20);
+        // Left and right quarters red: a 2:1 frame fitted to 1:1 keeps only the green middle.
+        for (x, _, p) in image.enumerate_pixels_mut() {
+            *p = if (10..30).contains(&x) {
+                image::Rgb([0, 255, 0])
+            } else {
+                image::Rgb([255, 0, 0])
+            };
+        }
+        let fitted = fit(&image, 8, 8);
+        assert_eq!(fitted.dimensions(), (8, 8));
+        assert!(
+            fitted.pixels().all(|p| p[1] > 200 && p[0] < 50),
+            "{fitted:?}"
+        );
+    }
+
+    #[test]
+    fn embeddings_are_zero_padded_and_checked() {
+        let bytes: Vec<u8> = [1.0f32, 2.0, 3.0, 4.0]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        let padded = embedding(&bytes, 2, 3, 2).unwrap().unwrap();
+        assert_eq!(padded, vec![1.0, 2.0, 3.0, 4.0, 0.0, 0.0]);
+        assert!(embedding(&bytes, 3, 3, 2).is_err());
+        assert!(embedding(&bytes, 2, 1, 2).is_err());
+        assert!(embedding(&[], 0, 3, 2).unwrap().is_none());
+    }
+}

@@ -1,0 +1,161 @@
+//! Refinement over REST: `POST /v1/clips/{id}/refine` (202 with a job), `GET /v1/jobs`,
+//! `GET /v1/jobs/{id}`, progress as server-sent events (`/events`), the result (`/result`: MP4,
+//! or one frame as PNG with `?frame=k`), and cancellation.
+
+use std::convert::Infallible;
+
+use axum::Json;
+use axum::extract::{Path, Query, State};
+use axum::http::{StatusCode, header};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use futures_util::Stream;
+use serde::Deserialize;
+use serde_json::{Value, json};
+
+use super::json::JsonBody;
+use crate::jobs::JobState;
+use crate::refine::RefineRequest;
+use crate::render::encode_mp4;
+use crate::{ApiError, AppState};
+
+pub async fn submit(
+    State(state): State<AppState>,
+    Path(clip_id): Path<String>,
+    JsonBody(request): JsonBody<RefineRequest>,
+) -> Result<Response, ApiError> {
+    let service = state.service()?;
+    request.validate(service, &clip_id)?;
+    let stored = serde_json::to_value(&request)
+        .map_err(|e| ApiError::Internal(format!("cannot store the request: {e}")))?;
+    let record = service.jobs.create(&clip_id, stored)?;
+    let location = format!("/v1/jobs/{}", record.id);
+    Ok((
+        StatusCode::ACCEPTED,
+        [(header::LOCATION, location)],
+        Json(json!(record)),
+    )
+        .into_response())
+}
+
+pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ApiError> {
+    Ok(Json(json!({ "jobs": state.service()?.jobs.list() })))
+}
+
+pub async fn get(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<Value>, ApiError> {
+    Ok(Json(json!(state.service()?.jobs.get(&id)?)))
+}
+
+pub async fn cancel(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<Value>, ApiError> {
+    Ok(Json(json!(state.service()?.jobs.cancel(&id)?)))
+}
+
+/// Every change of the job as an SSE `job` event (the whole record), ending after a terminal
+/// state.
+pub async fn events(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
+    let mut updates = state.service()?.jobs.subscribe(&id)?;
+    let stream = async_stream(move |tx| async move {
+        loop {
+            let record = updates.borrow_and_update().clone();
+            let event = Event::default()
+                .event("job")
+                .json_data(&record)
+                .unwrap_or_default();
+            if tx.send(Ok(event)).await.is_err() || record.state.is_terminal() {
+                return;
+            }
+            if updates.changed().await.is_err() {
+                return;
+            }
+        }
+    });
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}
+
+/// A stream fed by a task through a channel (bounded: a slow client slows the feed).
+fn async_stream<F, Fut>(body: F) -> impl Stream<Item = Result<Event, Infallible>>
+where
+    F: FnOnce(tokio::sync::mpsc::Sender<Result<Event, Infallible>>) -> Fut,
+    Fut: std::future::Future<Output = ()> + Send + 'static,
+{
+    let (tx, rx) = tokio::sync::mpsc::channel(16);
+    tokio::spawn(body(tx));
+    tokio_stream::wrappers::ReceiverStream::new(rx)
+}
+
+#[derive(Debug, Deserialize)]
+pub struct ResultQuery {
+    frame: Option<usize>,
+}
+
+pub async fn result(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Query(query): Query<ResultQuery>,
+) -> Result<Response, ApiError> {
+    let service = state.service()?.clone();
+    let record = service.jobs.get(&id)?;
+    if record.state != JobState::Done {
+        return Err(ApiError::invalid(format!(
+            "job {id} is {:?}: its result exists once it is done (GET /v1/jobs/{id})",
+            record.state
+        )));
+    }
+    let dir = service.jobs.result_dir(&id);
+    if let Some(k) = query.frame {
+        if k >= record.result_frames {
+            return Err(ApiError::NotFound(format!(
+                "job {id} has {} refined frames (0..{})",
+                record.result_frames, record.result_frames
+            )));
+        }
+        let png = tokio::fs::read(dir.join(format!("{k:04}.png")))
+            .await
+            .map_err(|e| ApiError::Internal(format!("cannot read a result frame: {e}")))?;
+        return Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response());
+    }
+    let video = dir.join("result.mp4");
+    if !video.exists() {
+        let mut frames = Vec::new();
+        let (mut width, mut height) = (0, 0);
+        for k in 0..record.result_frames {
+            let png = tokio::fs::read(dir.join(format!("{k:04}.png")))
+                .await
+                .map_err(|e| ApiError::Internal(format!("cannot read a result frame: {e}")))?;
+            let image = image::load_from_memory(&png)
+                .map_err(|e| ApiError::Internal(format!("a result frame is unreadable: {e}")))?
+                .to_rgb8();
+            (width, height) = image.dimensions();
+            frames.push(image.into_raw());
+        }
+        let fps = record.request["fps"].as_f64().unwrap_or(16.0);
+        let mp4 = encode_mp4(
+            &service.tools.ffmpeg,
+            &service.tools.scratch,
+            &frames,
+            width,
+            height,
+            fps,
+        )
+        .await?;
+        let tmp = dir.join(".result.mp4.tmp");
+        let stored = match tokio::fs::write(&tmp, &mp4).await {
+            Ok(()) => tokio::fs::rename(&tmp, &video).await,
+            Err(e) => Err(e),
+        };
+        stored.map_err(|e| ApiError::Internal(format!("cannot store the result video: {e}")))?;
+    }
+    let mp4 = tokio::fs::read(&video)
+        .await
+        .map_err(|e| ApiError::Internal(format!("cannot read the result video: {e}")))?;
+    Ok(([(header::CONTENT_TYPE, "video/mp4")], mp4).into_response())
+}

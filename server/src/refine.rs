@@ -1,0 +1,249 @@
+//! Refinement requests: what a client asks for (`POST /v1/clips/{id}/refine`), checked when it
+//! is submitted, and the video a worker gets when it takes the job: the clip's context frames
+//! (keep) followed by novel views rendered along the requested path (regenerate), sized to the
+//! worker's model.
+
+use std::sync::Arc;
+
+use c4g_proto::v1 as pb;
+use c4g_renderer::Trajectory;
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+
+use crate::ApiError;
+use crate::jobs::JobRecord;
+use crate::render::{CameraSpec, ImageFormat, encode_image};
+use crate::service::{PathRequest, Service};
+
+/// Samplers a worker runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SamplerName {
+    /// UniPC, order 2 (the default: fewer steps for the same quality).
+    #[default]
+    Unipc,
+    /// Euler.
+    Euler,
+}
+
+/// A refinement request. Every field is optional.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RefineRequest {
+    /// A camera preset for the novel views (default: the first context camera, still).
+    pub trajectory: Option<Trajectory>,
+    /// Or explicit cameras, one per novel view.
+    pub cameras: Option<Vec<CameraSpec>>,
+    /// The camera a preset moves around.
+    #[serde(default)]
+    pub camera: CameraSpec,
+    /// First time of the novel views (default: the span's start).
+    pub start: Option<f64>,
+    /// Last time (default: the span's end).
+    pub end: Option<f64>,
+    /// Context frames to condition on (default: all of the clip's, as many as fit).
+    pub context_frames: Option<usize>,
+    /// A caption of the scene (the prompt).
+    pub caption: Option<String>,
+    /// A precomputed prompt embedding, `[tokens, dim]` row-major.
+    pub text_embedding: Option<Vec<f32>>,
+    /// Its token count.
+    pub text_tokens: Option<usize>,
+    /// A precomputed negative-prompt embedding (same shape).
+    pub negative_embedding: Option<Vec<f32>>,
+    /// Denoising steps (default 30): the main speed / quality trade.
+    pub steps: Option<u32>,
+    /// Flow shift (default 3).
+    pub shift: Option<f64>,
+    /// Classifier-free guidance (default 5; 1 skips the unconditional pass).
+    pub guidance: Option<f64>,
+    /// Sampler.
+    pub sampler: Option<SamplerName>,
+    /// Noise seed (default 0).
+    pub seed: Option<u64>,
+    /// Strength of the VACE control (default 1).
+    pub control_scale: Option<f64>,
+    /// Frame rate of the result video (default 16).
+    pub fps: Option<f64>,
+}
+
+/// Most denoising steps a request may ask for.
+pub const MAX_STEPS: u32 = 1000;
+
+impl RefineRequest {
+    /// Checks everything that can be checked before a worker has the job.
+    pub fn validate(&self, service: &Service, clip_id: &str) -> Result<(), ApiError> {
+        let steps = self.steps.unwrap_or(30);
+        if steps == 0 || steps > MAX_STEPS {
+            return Err(ApiError::invalid(format!(
+                "steps must be in 1..={MAX_STEPS}, got {steps}"
+            )));
+        }
+        for (name, value, min) in [
+            ("shift", self.shift, 0.0),
+            ("guidance", self.guidance, 0.0),
+            ("control_scale", self.control_scale, -1e6),
+            ("fps", self.fps, 0.0),
+        ] {
+            if let Some(v) = value
+                && !(v.is_finite() && v > min)
+            {
+                return Err(ApiError::invalid(format!(
+                    "{name} must be a finite number above {min}, got {v}"
+                )));
+            }
+        }
+        if let Some(e) = &self.text_embedding {
+            let tokens = self.text_tokens.unwrap_or(0);
+            if tokens == 0 || e.is_empty() || e.len() % tokens != 0 {
+                return Err(ApiError::invalid(format!(
+                    "text_embedding holds {} numbers: give text_tokens, a divisor of that",
+                    e.len()
+                )));
+            }
+            if self
+                .negative_embedding
+                .as_ref()
+                .is_some_and(|n| n.len() != e.len())
+            {
+                return Err(ApiError::invalid(
+                    "negative_embedding must have the shape of text_embedding",
+                ));
+            }
+            if e.iter().any(|v| !v.is_finite()) {
+                return Err(ApiError::invalid("text_embedding must be finite"));
+            }
+        }
+        if self.context_frames == Some(0) {
+            return Err(ApiError::invalid("context_frames must be at least 1"));
+        }
+        // The path, planned at a nominal size: a bad camera or time range fails now, not later.
+        let record = service.store.get(clip_id)?;
+        let mut path = self.path(8);
+        path.width = Some(16);
+        path.height = Some(16);
+        if !path.cameras.is_empty() {
+            path.frames = None;
+        }
+        service.plan_path(&record, &path)?;
+        Ok(())
+    }
+
+    fn path(&self, frames: usize) -> PathRequest {
+        PathRequest {
+            preset: self.trajectory.clone(),
+            cameras: self.cameras.clone().unwrap_or_default(),
+            camera: self.camera.clone(),
+            frames: Some(frames),
+            start: self.start,
+            end: self.end,
+            width: None,
+            height: None,
+            background: [0.0; 3],
+        }
+    }
+
+    /// The sampler settings the worker gets.
+    pub fn params(&self) -> serde_json::Value {
+        json!({
+            "steps": self.steps.unwrap_or(30),
+            "shift": self.shift.unwrap_or(3.0),
+            "guidance": self.guidance.unwrap_or(5.0),
+            "sampler": self.sampler.unwrap_or_default(),
+            "seed": self.seed.unwrap_or(0),
+            "control_scale": self.control_scale.unwrap_or(1.0),
+        })
+    }
+}
+
+fn floats(values: &[f32]) -> Vec<u8> {
+    values.iter().flat_map(|v| v.to_le_bytes()).collect()
+}
+
+/// The job as a worker with a `frames`-frame, `width` × `height` model gets it: context frames
+/// (as uploaded), then novel views rendered at its size.
+pub async fn build_job(
+    service: &Arc<Service>,
+    record: &JobRecord,
+    frames: u32,
+    width: u32,
+    height: u32,
+) -> Result<pb::RefineJob, ApiError> {
+    let request: RefineRequest = serde_json::from_value(record.request.clone()).map_err(|e| {
+        ApiError::Internal(format!(
+            "stored request of {} is unreadable: {e}",
+            record.id
+        ))
+    })?;
+    let clip = service.store.get(&record.clip_id)?;
+    let frames = frames as usize;
+    let available = clip.context_times.len();
+    let context = request.context_frames.unwrap_or(available).min(available);
+    if frames < context + 1 {
+        return Err(ApiError::invalid(format!(
+            "the worker's model takes {frames} frames: too few for {context} context frames and \
+             at least one novel view (ask for fewer context_frames)"
+        )));
+    }
+    // The context frames spread over the clip's, first and last included.
+    let chosen: Vec<usize> = (0..context)
+        .map(|i| match context {
+            1 => 0,
+            _ => i * (available - 1) / (context - 1),
+        })
+        .collect();
+    let mut video = Vec::with_capacity(frames);
+    for &k in &chosen {
+        video.push(pb::VideoFrame {
+            time: clip.context_times[k],
+            png: service.context_frame_png(&clip.id, k)?,
+        });
+    }
+    let mut path = request.path(frames - context);
+    if request.cameras.is_some() {
+        path.frames = None;
+    }
+    path.width = Some(width);
+    path.height = Some(height);
+    let plan = service.plan_path(&clip, &path)?;
+    if plan.len() != frames - context {
+        return Err(ApiError::invalid(format!(
+            "{} cameras given; the worker's model refines {} novel views here",
+            plan.len(),
+            frames - context
+        )));
+    }
+    let encoding = service.store.encoding(&clip.id).await?;
+    let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
+    let rendered = service
+        .job(move |service| {
+            service
+                .render_path_now(&encoding, &plan, [0.0; 3])?
+                .iter()
+                .map(|image| encode_image(image, ImageFormat::Png))
+                .collect::<Result<Vec<_>, _>>()
+        })
+        .await?;
+    for (time, png) in times.into_iter().zip(rendered) {
+        video.push(pb::VideoFrame { time, png });
+    }
+    Ok(pb::RefineJob {
+        job_id: record.id.clone(),
+        attempt: record.attempt,
+        reactive: (0..frames).map(|i| i >= context).collect(),
+        frames: video,
+        params_json: request.params().to_string(),
+        caption: request.caption.clone().unwrap_or_default(),
+        text_embedding: request
+            .text_embedding
+            .as_deref()
+            .map(floats)
+            .unwrap_or_default(),
+        text_tokens: request.text_tokens.unwrap_or(0) as u32,
+        negative_embedding: request
+            .negative_embedding
+            .as_deref()
+            .map(floats)
+            .unwrap_or_default(),
+    })
+}

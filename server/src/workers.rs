@@ -1,0 +1,160 @@
+//! The gRPC service `c4g.v1.Jobs` that `c4g-refiner` workers pull refinement jobs from.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use c4g_proto::v1 as pb;
+use c4g_proto::v1::jobs_server::{Jobs, JobsServer};
+use tonic::{Request, Response, Status, Streaming};
+
+use crate::jobs::Progress;
+use crate::refine::build_job;
+use crate::service::Service;
+use crate::{ApiError, AppState};
+
+/// Longest a worker's `Take` waits for a job.
+const MAX_WAIT: Duration = Duration::from_secs(30);
+
+/// The tonic service.
+pub fn service(state: AppState) -> JobsServer<Workers> {
+    let limit = state.config().limits().max_grpc_message_bytes;
+    JobsServer::new(Workers { state })
+        .max_decoding_message_size(limit)
+        .max_encoding_message_size(usize::MAX)
+}
+
+/// Implements `c4g.v1.Jobs`.
+pub struct Workers {
+    state: AppState,
+}
+
+impl Workers {
+    fn service(&self) -> Result<&Arc<Service>, Status> {
+        Ok(self.state.service()?)
+    }
+}
+
+#[tonic::async_trait]
+impl Jobs for Workers {
+    async fn take(
+        &self,
+        request: Request<pb::TakeRequest>,
+    ) -> Result<Response<pb::TakeResponse>, Status> {
+        let request = request.into_inner();
+        let service = self.service()?.clone();
+        if request.worker.is_empty()
+            || request.frames == 0
+            || request.width == 0
+            || request.height == 0
+        {
+            return Err(Status::invalid_argument(
+                "a worker names itself and the frames, width and height its model refines",
+            ));
+        }
+        let (w, h) = service.image_size(Some(request.width), Some(request.height))?;
+        let wait = Duration::from_millis(u64::from(request.wait_ms)).min(MAX_WAIT);
+        loop {
+            let Some(record) = service.jobs.take(&request.worker, wait).await? else {
+                return Ok(Response::new(pb::TakeResponse { job: None }));
+            };
+            match build_job(&service, &record, request.frames, w, h).await {
+                Ok(job) => {
+                    tracing::info!(job = %record.id, worker = %request.worker, attempt = record.attempt, "job taken");
+                    return Ok(Response::new(pb::TakeResponse { job: Some(job) }));
+                }
+                Err(e) => {
+                    // Nothing a worker can do about a job it cannot be given: it fails, and the
+                    // worker gets the next one.
+                    let retryable =
+                        matches!(e, ApiError::Internal(_) | ApiError::Overloaded { .. });
+                    service.jobs.fail(
+                        &record.id,
+                        &request.worker,
+                        &e.to_string(),
+                        retryable,
+                        false,
+                    )?;
+                }
+            }
+        }
+    }
+
+    async fn progress(
+        &self,
+        request: Request<pb::ProgressRequest>,
+    ) -> Result<Response<pb::ProgressResponse>, Status> {
+        let r = request.into_inner();
+        let cancelled = self.service()?.jobs.progress(
+            &r.job_id,
+            &r.worker,
+            Progress {
+                step: r.step,
+                steps: r.steps,
+                stage: r.stage,
+            },
+        )?;
+        Ok(Response::new(pb::ProgressResponse { cancelled }))
+    }
+
+    async fn finish(
+        &self,
+        request: Request<Streaming<pb::FinishRequest>>,
+    ) -> Result<Response<pb::FinishResponse>, Status> {
+        let service = self.service()?.clone();
+        let mut stream = request.into_inner();
+        let header = match stream.message().await? {
+            Some(pb::FinishRequest {
+                part: Some(pb::finish_request::Part::Header(h)),
+            }) => h,
+            _ => return Err(Status::invalid_argument("a result starts with its header")),
+        };
+        let mut frames = Vec::new();
+        while let Some(message) = stream.message().await? {
+            match message.part {
+                Some(pb::finish_request::Part::FramePng(png)) => frames.push(png),
+                _ => {
+                    return Err(Status::invalid_argument(
+                        "after the header a result sends frames",
+                    ));
+                }
+            }
+        }
+        if frames.len() != header.frames as usize {
+            return Err(Status::invalid_argument(format!(
+                "the header announced {} frames, {} came",
+                header.frames,
+                frames.len()
+            )));
+        }
+        if let Some(bad) = frames
+            .iter()
+            .position(|f| !matches!(image::guess_format(f), Ok(image::ImageFormat::Png)))
+        {
+            return Err(Status::invalid_argument(format!(
+                "result frame {bad} is not a PNG"
+            )));
+        }
+        let record = tokio::task::spawn_blocking(move || {
+            service
+                .jobs
+                .finish(&header.job_id, &header.worker, &frames, header.seconds)
+        })
+        .await
+        .map_err(|e| Status::internal(format!("storing a result panicked: {e}")))??;
+        tracing::info!(job = %record.id, frames = record.result_frames, "job done");
+        Ok(Response::new(pb::FinishResponse {}))
+    }
+
+    async fn fail(
+        &self,
+        request: Request<pb::FailRequest>,
+    ) -> Result<Response<pb::FailResponse>, Status> {
+        let r = request.into_inner();
+        let record =
+            self.service()?
+                .jobs
+                .fail(&r.job_id, &r.worker, &r.error, r.retryable, r.cancelled)?;
+        tracing::warn!(job = %record.id, state = ?record.state, "worker reported: {}", r.error);
+        Ok(Response::new(pb::FailResponse {}))
+    }
+}

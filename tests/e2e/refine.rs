@@ -1,0 +1,233 @@
+//! Refinement end to end: `c4g-server` and `c4g-refiner` as processes on loopback, with the tiny
+//! Wan-VACE fixture package. A rendered trajectory of a clip is refined; a worker killed mid-job
+//! leaves the job queued for another attempt (never stuck in `running`), and a cancelled job
+//! stops at its worker's next step.
+#![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use c4g_e2e::{Server, binary, ort_available, upload_synthetic, workspace};
+use reqwest::blocking::Client;
+use serde_json::{Value, json};
+
+struct Worker(Child);
+
+impl Drop for Worker {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn worker(server: &Server, name: &str) -> Worker {
+    Worker(
+        Command::new(binary("c4g-refiner"))
+            .current_dir(workspace())
+            .args([
+                "--server",
+                &server.url(),
+                "--name",
+                name,
+                "--intra-op-threads",
+                "1",
+            ])
+            .env(
+                "RUST_LOG",
+                std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
+            )
+            .stdout(Stdio::null())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap(),
+    )
+}
+
+fn job(client: &Client, server: &Server, id: &str) -> Value {
+    client
+        .get(server.at(&format!("/v1/jobs/{id}")))
+        .send()
+        .unwrap()
+        .json()
+        .unwrap()
+}
+
+/// Polls job `id` until `done` says so, or panics after `limit`.
+fn wait_for(
+    client: &Client,
+    server: &Server,
+    id: &str,
+    limit: Duration,
+    done: impl Fn(&Value) -> bool,
+) -> Value {
+    let deadline = Instant::now() + limit;
+    loop {
+        let record = job(client, server, id);
+        if done(&record) {
+            return record;
+        }
+        assert!(Instant::now() < deadline, "job never got there: {record:#}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn a_worker_refines_a_rendered_trajectory_and_reports_every_step() {
+    if !ort_available() {
+        return;
+    }
+    let server = Server::start(&[]);
+    let clip = upload_synthetic(&server);
+    let client = Client::new();
+    let _worker = worker(&server, "w1");
+    let submitted = client
+        .post(server.at(&format!("/v1/clips/{clip}/refine")))
+        .json(&json!({"trajectory": {"kind": "orbit", "depth": 2.0, "angle_degrees": 10}, "steps": 3, "seed": 7}))
+        .send()
+        .unwrap();
+    assert_eq!(submitted.status(), 202);
+    let location = submitted.headers()["location"].to_str().unwrap().to_owned();
+    let id = submitted.json::<Value>().unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    assert_eq!(location, format!("/v1/jobs/{id}"));
+
+    // Progress as server-sent events: every step, then the terminal state, then the end.
+    let events = client
+        .get(server.at(&format!("/v1/jobs/{id}/events")))
+        .send()
+        .unwrap();
+    let mut steps = Vec::new();
+    let mut last = Value::Null;
+    for line in BufReader::new(events).lines() {
+        let line = line.unwrap();
+        if let Some(data) = line.strip_prefix("data: ") {
+            last = serde_json::from_str(data).unwrap();
+            if let Some(step) = last["progress"]["step"].as_u64() {
+                steps.push(step);
+            }
+        }
+    }
+    assert_eq!(last["state"], "done", "{last:#}");
+    steps.dedup();
+    assert!(steps.contains(&3), "{steps:?}");
+    assert_eq!(last["worker"], "w1");
+
+    let frames = last["result_frames"].as_u64().unwrap();
+    assert!(frames >= 1);
+    let png = client
+        .get(server.at(&format!("/v1/jobs/{id}/result?frame=0")))
+        .send()
+        .unwrap();
+    assert_eq!(png.headers()["content-type"], "image/png");
+    let image = image::load_from_memory(&png.bytes().unwrap()).unwrap();
+    let package: Value = serde_json::from_slice(
+        &std::fs::read(workspace().join("models/fixtures/wan-vace-tiny/refiner.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(u64::from(image.width()), package["width"].as_u64().unwrap());
+    let video = client
+        .get(server.at(&format!("/v1/jobs/{id}/result")))
+        .send()
+        .unwrap();
+    assert_eq!(video.headers()["content-type"], "video/mp4");
+    assert_eq!(&video.bytes().unwrap()[4..8], b"ftyp");
+}
+
+#[test]
+fn the_cli_refines_with_a_progress_report_and_downloads_the_video() {
+    if !ort_available() {
+        return;
+    }
+    let server = Server::start(&[]);
+    let clip = upload_synthetic(&server);
+    let _worker = worker(&server, "w-cli");
+    let out = tempfile::tempdir().unwrap();
+    let video = out.path().join("refined.mp4");
+    let output = Command::new(binary("c4g"))
+        .args([
+            "--server",
+            &server.url(),
+            "refine",
+            &clip,
+            "--orbit",
+            "10",
+            "--steps",
+            "2",
+            "-o",
+        ])
+        .arg(&video)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(stdout.contains("wrote"), "{stdout}");
+    assert_eq!(&std::fs::read(&video).unwrap()[4..8], b"ftyp");
+}
+
+#[test]
+fn a_killed_worker_leaves_its_job_queued_for_another_attempt_and_cancelling_stops_it() {
+    if !ort_available() {
+        return;
+    }
+    let server = Server::start(&["--job-lease-s", "2", "--job-attempts", "3"]);
+    let clip = upload_synthetic(&server);
+    let client = Client::new();
+    let mut first = worker(&server, "doomed");
+    // Many steps: the job is still running when the worker is killed.
+    let submitted: Value = client
+        .post(server.at(&format!("/v1/clips/{clip}/refine")))
+        .json(&json!({"steps": 1000}))
+        .send()
+        .unwrap()
+        .json()
+        .unwrap();
+    let id = submitted["id"].as_str().unwrap().to_owned();
+    wait_for(&client, &server, &id, Duration::from_secs(120), |j| {
+        j["state"] == "running" && j["progress"]["step"].as_u64().unwrap_or(0) >= 1
+    });
+    first.0.kill().unwrap();
+    first.0.wait().unwrap();
+
+    // The lease runs out: queued again, on its second attempt, with the reason recorded.
+    let requeued = wait_for(&client, &server, &id, Duration::from_secs(30), |j| {
+        j["state"] != "running"
+    });
+    assert_eq!(requeued["state"], "queued", "{requeued:#}");
+    assert_eq!(requeued["attempt"], 2);
+    assert!(
+        requeued["history"][0]
+            .as_str()
+            .unwrap()
+            .contains("doomed stopped responding"),
+        "{requeued:#}"
+    );
+
+    // Another worker takes it; a cancellation stops it at its next step.
+    let _second = worker(&server, "survivor");
+    wait_for(&client, &server, &id, Duration::from_secs(120), |j| {
+        j["state"] == "running"
+            && j["worker"] == "survivor"
+            && j["progress"]["step"].as_u64().unwrap_or(0) >= 1
+    });
+    let cancelled = client
+        .post(server.at(&format!("/v1/jobs/{id}/cancel")))
+        .send()
+        .unwrap();
+    assert_eq!(cancelled.status(), 200);
+    let done = wait_for(&client, &server, &id, Duration::from_secs(60), |j| {
+        j["state"] != "running"
+    });
+    assert_eq!(done["state"], "cancelled", "{done:#}");
+    let result = client
+        .get(server.at(&format!("/v1/jobs/{id}/result")))
+        .send()
+        .unwrap();
+    assert_eq!(result.status(), 400);
+}
