@@ -423,7 +423,7 @@ impl Service {
         Ok(bytes)
     }
 
-    /// What `/v1/models` says about the served model.
+    /// The short hash of the model package that keys its clips and jobs on disk.
     pub fn model_key(&self) -> &str {
         &self.model_key
     }

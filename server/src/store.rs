@@ -242,7 +242,7 @@ impl ClipStore {
         Ok(encoding)
     }
 
-    /// The clip's context frames, in the order given at upload.
+    /// Where context frame `index` (in time order) of clip `id` is stored, as PNG.
     pub fn frame_path(&self, id: &str, index: usize) -> PathBuf {
         self.dir
             .join(id)
@@ -286,11 +286,6 @@ impl ClipStore {
         std::fs::rename(&path, &doomed)
             .and_then(|()| std::fs::remove_dir_all(&doomed))
             .map_err(|e| ApiError::Internal(format!("cannot delete clip {id} from disk: {e}")))
-    }
-
-    /// Bytes of features held in memory.
-    pub fn cached_bytes(&self) -> u64 {
-        self.lock().cached_bytes
     }
 }
 
