@@ -12,7 +12,7 @@ use serde_json::json;
 
 use crate::ApiError;
 use crate::jobs::JobRecord;
-use crate::render::{CameraSpec, ImageFormat, encode_image};
+use crate::render::{CameraSpec, ImageFormat, encode_image, le_bytes};
 use crate::service::{PathRequest, Service};
 
 /// Samplers a worker runs.
@@ -156,10 +156,6 @@ impl RefineRequest {
     }
 }
 
-fn floats(values: &[f32]) -> Vec<u8> {
-    values.iter().flat_map(|v| v.to_le_bytes()).collect()
-}
-
 /// The job as a worker with a `frames`-frame, `width` × `height` model gets it: context frames
 /// (as uploaded), then novel views rendered at its size.
 pub async fn build_job(
@@ -237,13 +233,13 @@ pub async fn build_job(
         text_embedding: request
             .text_embedding
             .as_deref()
-            .map(floats)
+            .map(le_bytes)
             .unwrap_or_default(),
         text_tokens: request.text_tokens.unwrap_or(0) as u32,
         negative_embedding: request
             .negative_embedding
             .as_deref()
-            .map(floats)
+            .map(le_bytes)
             .unwrap_or_default(),
     })
 }

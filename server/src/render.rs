@@ -187,8 +187,8 @@ pub fn encode_image(image: &Image, format: ImageFormat) -> Result<Vec<u8>, ApiEr
             .map_err(|e| ApiError::Internal(format!("PNG encoding failed: {e}")))?;
             Ok(bytes)
         }
-        ImageFormat::Depth => Ok(floats(&image.expected_depth)),
-        ImageFormat::Alpha => Ok(floats(&image.alpha)),
+        ImageFormat::Depth => Ok(le_bytes(&image.expected_depth)),
+        ImageFormat::Alpha => Ok(le_bytes(&image.alpha)),
         ImageFormat::Mp4 => Err(ApiError::invalid(
             "mp4 is for trajectories: add a \"trajectory\" (or use png, depth or alpha)",
         )),
@@ -204,7 +204,8 @@ pub fn to_rgb8(image: &Image) -> Vec<u8> {
         .collect()
 }
 
-fn floats(values: &[f32]) -> Vec<u8> {
+/// Floats as packed little-endian bytes (raw depth and alpha, prompt embeddings on the wire).
+pub(crate) fn le_bytes(values: &[f32]) -> Vec<u8> {
     values.iter().flat_map(|v| v.to_le_bytes()).collect()
 }
 

@@ -430,13 +430,12 @@ impl Service {
 }
 
 fn check_background(background: [f32; 3]) -> Result<(), ApiError> {
-    if background.iter().all(|v| v.is_finite()) {
-        Ok(())
-    } else {
-        Err(ApiError::invalid(format!(
-            "background {background:?} must be finite"
-        )))
-    }
+    // The renderer's own check, run before any decoding is spent on the request.
+    let options = c4g_renderer::RenderOptions {
+        background,
+        ..c4g_renderer::RenderOptions::default()
+    };
+    Ok(options.validate()?)
 }
 
 /// A short hash of the package's manifest and graphs: clips are stored per model.
