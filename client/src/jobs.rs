@@ -125,6 +125,9 @@ pub struct RefineRequest {
     /// A caption of the scene (the prompt).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub caption: Option<String>,
+    /// What the result should not look like (the negative prompt).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub negative_prompt: Option<String>,
     /// A precomputed prompt embedding, `[tokens, dim]` row-major.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub text_embedding: Option<Vec<f32>>,

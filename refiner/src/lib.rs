@@ -11,6 +11,7 @@
 //! | [`package`] | `refiner.json` and the package contract |
 //! | [`control`] | the VACE control tensor: mask split, unshuffle, temporal resampling, latent normalisation |
 //! | [`sampler`] | the sigma schedule, Euler and UniPC |
+//! | [`text`] | captions to prompt embeddings: clean-up, umT5's tokenizer, the encoder graph |
 //! | [`lora`] | LoRA files in PEFT and Wan naming, name mapping, the merge |
 //! | [`onnx`] | reading initializers out of an `.onnx` file |
 //! | `noise` | the seeded Gaussian generator |
@@ -28,6 +29,7 @@ pub mod package;
 mod pipeline;
 mod runtime;
 pub mod sampler;
+pub mod text;
 pub mod worker;
 
 pub use control::Mask;

@@ -82,6 +82,12 @@ pub struct Files {
     pub vae_encoder: String,
     /// (Un-normalised) latents to video.
     pub vae_decoder: String,
+    /// umT5's encoder: token ids and mask to hidden states (optional, with `tokenizer`).
+    #[serde(default)]
+    pub text_encoder: Option<String>,
+    /// umT5's tokenizer, a Hugging Face `tokenizer.json` (optional, with `text_encoder`).
+    #[serde(default)]
+    pub tokenizer: Option<String>,
 }
 
 impl Manifest {
@@ -174,7 +180,15 @@ impl Package {
         };
         manifest.check().map_err(invalid)?;
         let files = &manifest.files;
-        for file in [&files.transformer, &files.vae_encoder, &files.vae_decoder] {
+        if files.text_encoder.is_some() != files.tokenizer.is_some() {
+            return Err(invalid(
+                "files.text_encoder and files.tokenizer come together: a caption needs both"
+                    .to_owned(),
+            ));
+        }
+        let required = [&files.transformer, &files.vae_encoder, &files.vae_decoder];
+        let optional = [&files.text_encoder, &files.tokenizer];
+        for file in required.into_iter().chain(optional.into_iter().flatten()) {
             if !dir.join(file).is_file() {
                 return Err(invalid(format!("{file} is missing")));
             }
@@ -205,6 +219,15 @@ impl Package {
     /// Path of the VAE decoder graph.
     pub fn vae_decoder_path(&self) -> PathBuf {
         self.dir.join(&self.manifest.files.vae_decoder)
+    }
+
+    /// Paths of the tokenizer and the text-encoder graph, when the package has them.
+    pub fn text_encoder_paths(&self) -> Option<(PathBuf, PathBuf)> {
+        let files = &self.manifest.files;
+        Some((
+            self.dir.join(files.tokenizer.as_ref()?),
+            self.dir.join(files.text_encoder.as_ref()?),
+        ))
     }
 }
 
@@ -255,6 +278,20 @@ mod tests {
         let err = Package::open(dir.path()).unwrap_err();
         assert!(matches!(err, RefinerError::InvalidPackage { .. }), "{err}");
         assert!(err.to_string().contains("latent grid"), "{err}");
+    }
+
+    #[test]
+    fn a_text_encoder_without_its_tokenizer_is_refused() {
+        let json = manifest_json(9, 3).replace(
+            r#""vae_decoder": "vae_decoder.onnx"}"#,
+            r#""vae_decoder": "vae_decoder.onnx", "text_encoder": "text_encoder.onnx"}"#,
+        );
+        let dir = write_package(&json);
+        std::fs::write(dir.path().join("text_encoder.onnx"), b"").unwrap();
+        let err = Package::open(dir.path()).unwrap_err();
+        assert!(err.to_string().contains("tokenizer"), "{err}");
+        let p = Package::open(write_package(&manifest_json(9, 3)).path()).unwrap();
+        assert_eq!(p.text_encoder_paths(), None);
     }
 
     #[test]

@@ -28,6 +28,7 @@ use crate::runtime::{
     ExecutionProvider, SessionConfig, create_session, create_session_with_weights,
 };
 use crate::sampler::{Sampler, Schedule, Solver};
+use crate::text::TextEncoder;
 use crate::{RefinerError, Result};
 
 /// How a [`Pipeline`] is built.
@@ -41,6 +42,9 @@ pub struct PipelineOptions {
     pub execution_provider: ExecutionProvider,
     /// Keep ONNX Runtime's CPU memory arena (faster repeated runs, memory held at its peak).
     pub cpu_arena: bool,
+    /// Leave the package's text encoder unloaded (umT5-XXL is ~23 GB): prompts must then come
+    /// as precomputed embeddings.
+    pub skip_text_encoder: bool,
 }
 
 /// One refinement.
@@ -113,6 +117,7 @@ pub struct Pipeline {
     transformer: Mutex<Session>,
     vae_encoder: Mutex<Session>,
     vae_decoder: Mutex<Session>,
+    text_encoder: Option<TextEncoder>,
     merged_weights: usize,
 }
 
@@ -153,12 +158,23 @@ impl Pipeline {
         };
         let vae_encoder = create_session(&package.vae_encoder_path(), config)?;
         let vae_decoder = create_session(&package.vae_decoder_path(), config)?;
+        let text_encoder = match package.text_encoder_paths() {
+            Some((tokenizer, graph)) if !options.skip_text_encoder => Some(TextEncoder::load(
+                &tokenizer,
+                &graph,
+                m.text.tokens,
+                m.text.dim,
+                config,
+            )?),
+            _ => None,
+        };
         Ok(Self {
             package,
             stats,
             transformer: Mutex::new(transformer),
             vae_encoder: Mutex::new(vae_encoder),
             vae_decoder: Mutex::new(vae_decoder),
+            text_encoder,
             merged_weights: merged,
         })
     }
@@ -171,6 +187,24 @@ impl Pipeline {
     /// The package's manifest.
     pub fn manifest(&self) -> &Manifest {
         self.package.manifest()
+    }
+
+    /// The text encoder, when the package has one and it was loaded.
+    pub fn text_encoder(&self) -> Option<&TextEncoder> {
+        self.text_encoder.as_ref()
+    }
+
+    /// A caption's prompt embedding `[L, D]`; an error naming the way out when this pipeline has
+    /// no text encoder.
+    pub fn embed_caption(&self, caption: &str) -> Result<Vec<f32>> {
+        self.text_encoder
+            .as_ref()
+            .ok_or_else(|| {
+                RefinerError::InvalidRequest(
+                    "this refiner has no text encoder (its package has none, or it was started without one): send a precomputed text embedding instead of a caption".to_owned(),
+                )
+            })?
+            .embed(caption)
     }
 
     /// How many transformer weights the LoRA replaced (0 without a LoRA or at scale 0).

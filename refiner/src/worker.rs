@@ -108,24 +108,13 @@ async fn run_job(client: &mut Client, worker: &str, pipeline: &Arc<Pipeline>, jo
     let id = job.job_id.clone();
     tracing::info!(job = %id, attempt = job.attempt, frames = job.frames.len(), "job started");
     let started = Instant::now();
-    let outcome = match request(pipeline, &job) {
-        Ok(request) => {
-            refine(
-                client.clone(),
-                worker,
-                pipeline.clone(),
-                id.clone(),
-                request,
-            )
-            .await
-        }
-        Err(e) => Err(e),
-    };
+    let reactive = job.reactive.clone();
+    let outcome = refine(client.clone(), worker, pipeline.clone(), job).await;
     let report = match outcome {
         Ok(frames) => {
             let reactive: Vec<Vec<u8>> = frames
                 .into_iter()
-                .zip(&job.reactive)
+                .zip(&reactive)
                 .filter(|(_, reactive)| **reactive)
                 .map(|(png, _)| png)
                 .collect();
@@ -174,13 +163,13 @@ async fn run_job(client: &mut Client, worker: &str, pipeline: &Arc<Pipeline>, jo
     }
 }
 
-/// Runs the pipeline on a blocking thread, reporting each step.
+/// Prepares the job (frames, prompt embeddings: the text encoder may take seconds) and runs the
+/// pipeline, on a blocking thread, reporting each step.
 async fn refine(
     client: Client,
     worker: &str,
     pipeline: Arc<Pipeline>,
-    id: String,
-    request: RefineRequest,
+    job: pb::RefineJob,
 ) -> Result<Vec<Vec<u8>>, RefinerError> {
     let handle = tokio::runtime::Handle::current();
     let worker = worker.to_owned();
@@ -189,6 +178,8 @@ async fn refine(
         (m.height, m.width)
     };
     tokio::task::spawn_blocking(move || {
+        let request = request(&pipeline, &job)?;
+        let id = job.job_id;
         let mut client = client;
         let mut progress = |step: usize, steps: usize| {
             let report = pb::ProgressRequest {
@@ -242,33 +233,21 @@ fn request(pipeline: &Pipeline, job: &pb::RefineJob) -> Result<RefineRequest, Re
             Ok(to_unit(&fit(&image, m.width as u32, m.height as u32)))
         })
         .collect::<Result<Vec<_>, RefinerError>>()?;
-    let text_len = m.text.tokens * m.text.dim;
-    let text = embedding(
-        &job.text_embedding,
-        job.text_tokens as usize,
-        m.text.tokens,
-        m.text.dim,
+    let tokens = job.text_tokens as usize;
+    let text = prompt(
+        pipeline,
+        embedding(&job.text_embedding, tokens, m.text.tokens, m.text.dim)?,
+        &job.caption,
     )?;
-    let negative = embedding(
-        &job.negative_embedding,
-        job.text_tokens as usize,
-        m.text.tokens,
-        m.text.dim,
+    let negative = prompt(
+        pipeline,
+        embedding(&job.negative_embedding, tokens, m.text.tokens, m.text.dim)?,
+        &job.negative_prompt,
     )?;
-    if text.is_none() && !job.caption.is_empty() {
-        tracing::warn!(
-            job = %job.job_id,
-            "this worker has no text encoder: the caption is ignored (send text_embedding)"
-        );
-    }
     let params: serde_json::Value = serde_json::from_str(&job.params_json)
         .map_err(|e| RefinerError::InvalidRequest(format!("bad job parameters: {e}")))?;
-    let mut request = RefineRequest::new(
-        video,
-        Mask::Frames(job.reactive.clone()),
-        text.unwrap_or_else(|| vec![0.0; text_len]),
-    );
-    request.negative_embeddings = Some(negative.unwrap_or_else(|| vec![0.0; text_len]));
+    let mut request = RefineRequest::new(video, Mask::Frames(job.reactive.clone()), text);
+    request.negative_embeddings = Some(negative);
     if let Some(steps) = params["steps"].as_u64() {
         request.steps = steps as usize;
     }
@@ -289,6 +268,23 @@ fn request(pipeline: &Pipeline, job: &pb::RefineJob) -> Result<RefineRequest, Re
         _ => Sampler::UniPc,
     };
     Ok(request)
+}
+
+/// A prompt's embedding: the precomputed one if the job has it, else the text's (an error when
+/// there is text and no text encoder). No text at all is the empty prompt, as in the reference
+/// pipeline; without a text encoder it is all zeros.
+fn prompt(
+    pipeline: &Pipeline,
+    precomputed: Option<Vec<f32>>,
+    text: &str,
+) -> Result<Vec<f32>, RefinerError> {
+    match precomputed {
+        Some(embedding) => Ok(embedding),
+        None if !text.is_empty() || pipeline.text_encoder().is_some() => {
+            pipeline.embed_caption(text)
+        }
+        None => Ok(vec![0.0; pipeline.manifest().text_len()]),
+    }
 }
 
 /// A prompt embedding of `tokens` rows zero-padded to the model's `max_tokens` (as the reference

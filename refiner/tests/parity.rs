@@ -337,7 +337,13 @@ fn external_package(
     move_it: &dyn Fn(&str, usize) -> bool,
 ) -> (tempfile::TempDir, BTreeSet<String>) {
     let dir = tempfile::tempdir().unwrap();
-    for f in ["refiner.json", "vae_encoder.onnx", "vae_decoder.onnx"] {
+    for f in [
+        "refiner.json",
+        "vae_encoder.onnx",
+        "vae_decoder.onnx",
+        "text_encoder.onnx",
+        "tokenizer.json",
+    ] {
         std::fs::copy(fixture_dir().join(f), dir.path().join(f)).unwrap();
     }
     let moved = externalize(&fixture_dir().join("transformer.onnx"), dir.path(), move_it);

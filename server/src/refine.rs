@@ -43,8 +43,10 @@ pub struct RefineRequest {
     pub end: Option<f64>,
     /// Context frames to condition on (default: all of the clip's, as many as fit).
     pub context_frames: Option<usize>,
-    /// A caption of the scene (the prompt).
+    /// A caption of the scene (the prompt), encoded by the worker's text encoder.
     pub caption: Option<String>,
+    /// What the result should not look like (the negative prompt; default empty).
+    pub negative_prompt: Option<String>,
     /// A precomputed prompt embedding, `[tokens, dim]` row-major.
     pub text_embedding: Option<Vec<f32>>,
     /// Its token count.
@@ -69,6 +71,9 @@ pub struct RefineRequest {
 
 /// Most denoising steps a request may ask for.
 pub const MAX_STEPS: u32 = 1000;
+/// Longest caption or negative prompt, in characters: umT5 reads 512 tokens (a few thousand
+/// characters) and drops the rest, so longer text only costs the worker.
+pub const MAX_PROMPT_CHARS: usize = 10_000;
 
 impl RefineRequest {
     /// Checks everything that can be checked before a worker has the job.
@@ -92,6 +97,37 @@ impl RefineRequest {
                     "{name} must be a finite number above {min}, got {v}"
                 )));
             }
+        }
+        for (name, text, embedding) in [
+            ("caption", &self.caption, self.text_embedding.is_some()),
+            (
+                "negative_prompt",
+                &self.negative_prompt,
+                self.negative_embedding.is_some(),
+            ),
+        ] {
+            let Some(text) = text else { continue };
+            if embedding {
+                let other = if name == "caption" {
+                    "text_embedding"
+                } else {
+                    "negative_embedding"
+                };
+                return Err(ApiError::invalid(format!(
+                    "give {name} or {other}, not both: the embedding would win and the text be ignored"
+                )));
+            }
+            let chars = text.chars().count();
+            if chars > MAX_PROMPT_CHARS {
+                return Err(ApiError::invalid(format!(
+                    "{name} has {chars} characters; at most {MAX_PROMPT_CHARS} are accepted (the text encoder reads 512 tokens)"
+                )));
+            }
+        }
+        if self.negative_embedding.is_some() && self.text_embedding.is_none() {
+            return Err(ApiError::invalid(
+                "negative_embedding needs text_embedding (their token count is text_tokens)",
+            ));
         }
         if let Some(e) = &self.text_embedding {
             let tokens = self.text_tokens.unwrap_or(0);
@@ -230,6 +266,7 @@ pub async fn build_job(
         frames: video,
         params_json: request.params().to_string(),
         caption: request.caption.clone().unwrap_or_default(),
+        negative_prompt: request.negative_prompt.clone().unwrap_or_default(),
         text_embedding: request
             .text_embedding
             .as_deref()

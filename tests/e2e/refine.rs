@@ -83,7 +83,8 @@ fn a_worker_refines_a_rendered_trajectory_and_reports_every_step() {
     let _worker = worker(&server, "w1");
     let submitted = client
         .post(server.at(&format!("/v1/clips/{clip}/refine")))
-        .json(&json!({"trajectory": {"kind": "orbit", "depth": 2.0, "angle_degrees": 10}, "steps": 3, "seed": 7}))
+        .json(&json!({"trajectory": {"kind": "orbit", "depth": 2.0, "angle_degrees": 10}, "steps": 3, "seed": 7,
+                      "caption": "a red cube slides across a table", "negative_prompt": "blurry"}))
         .send()
         .unwrap();
     assert_eq!(submitted.status(), 202);
@@ -136,6 +137,95 @@ fn a_worker_refines_a_rendered_trajectory_and_reports_every_step() {
     assert_eq!(&video.bytes().unwrap()[4..8], b"ftyp");
 }
 
+/// Submits a 2-step refinement of `clip` with `prompt` merged into the request, and returns the
+/// first refined frame once the job is done.
+fn refined_frame(client: &Client, server: &Server, clip: &str, prompt: Value) -> Vec<u8> {
+    let mut request = json!({"trajectory": {"kind": "orbit", "depth": 2.0, "angle_degrees": 10}, "steps": 2, "seed": 3});
+    request
+        .as_object_mut()
+        .unwrap()
+        .extend(prompt.as_object().unwrap().clone());
+    let submitted = client
+        .post(server.at(&format!("/v1/clips/{clip}/refine")))
+        .json(&request)
+        .send()
+        .unwrap();
+    assert_eq!(submitted.status(), 202);
+    let id = submitted.json::<Value>().unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    let record = wait_for(client, server, &id, Duration::from_secs(120), |j| {
+        j["state"] != "queued" && j["state"] != "running"
+    });
+    assert_eq!(record["state"], "done", "{record:#}");
+    client
+        .get(server.at(&format!("/v1/jobs/{id}/result?frame=0")))
+        .send()
+        .unwrap()
+        .bytes()
+        .unwrap()
+        .to_vec()
+}
+
+#[test]
+fn the_caption_and_negative_prompt_steer_the_result_and_bad_prompts_are_refused() {
+    if !ort_available() {
+        return;
+    }
+    let server = Server::start(&[]);
+    let clip = upload_synthetic(&server);
+    let client = Client::new();
+    let _worker = worker(&server, "w-text");
+    let cube = refined_frame(&client, &server, &clip, json!({"caption": "a red cube"}));
+    // Text is cleaned as the reference pipeline cleans it: the same prompt, the same frame.
+    let spaced = refined_frame(
+        &client,
+        &server,
+        &clip,
+        json!({"caption": "  a red\n cube  "}),
+    );
+    let dog = refined_frame(
+        &client,
+        &server,
+        &clip,
+        json!({"caption": "a dog runs on the lawn"}),
+    );
+    let negative = refined_frame(
+        &client,
+        &server,
+        &clip,
+        json!({"caption": "a red cube", "negative_prompt": "blurry"}),
+    );
+    assert_eq!(cube, spaced);
+    assert_ne!(cube, dog);
+    assert_ne!(cube, negative);
+
+    for (body, says) in [
+        (
+            json!({"caption": "a", "text_embedding": vec![0.0; 32], "text_tokens": 1}),
+            "not both",
+        ),
+        (
+            json!({"negative_prompt": "x".repeat(10_001)}),
+            "at most 10000",
+        ),
+        (
+            json!({"negative_embedding": vec![0.0; 32]}),
+            "needs text_embedding",
+        ),
+    ] {
+        let answer = client
+            .post(server.at(&format!("/v1/clips/{clip}/refine")))
+            .json(&body)
+            .send()
+            .unwrap();
+        assert_eq!(answer.status(), 400);
+        let text = answer.text().unwrap();
+        assert!(text.contains(says), "{text}");
+    }
+}
+
 #[test]
 fn the_cli_refines_with_a_progress_report_and_downloads_the_video() {
     if !ort_available() {
@@ -156,6 +246,10 @@ fn the_cli_refines_with_a_progress_report_and_downloads_the_video() {
             "10",
             "--steps",
             "2",
+            "--caption",
+            "a red cube slides across a table",
+            "--negative-prompt",
+            "blurry",
             "-o",
         ])
         .arg(&video)

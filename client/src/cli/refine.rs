@@ -65,6 +65,9 @@ pub struct Args {
     /// A caption of the scene (the prompt).
     #[arg(long, value_name = "TEXT")]
     caption: Option<String>,
+    /// What the result should not look like (the negative prompt; default empty).
+    #[arg(long, value_name = "TEXT")]
+    negative_prompt: Option<String>,
     /// Context frames to condition on (default: all of the clip's, as many as fit).
     #[arg(long, value_name = "N")]
     context_frames: Option<usize>,
@@ -102,6 +105,7 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
         }),
         seed: args.seed,
         caption: args.caption,
+        negative_prompt: args.negative_prompt,
         context_frames: args.context_frames,
         ..RefineRequest::default()
     };

@@ -13,7 +13,7 @@ import pytest
 import torch
 from conftest import REPO
 
-from c4g.wan import configs, export, onnx_graphs, reference
+from c4g.wan import configs, export, onnx_graphs, reference, text
 
 FIXTURE = REPO / "models/fixtures/wan-vace-tiny"
 ONNX_ATOL = 1e-4  # f32 graph vs PyTorch; measured ~5e-7 (transformer, encoder) and ~1e-5 (decoder)
@@ -59,8 +59,12 @@ def run_transformer(sessions, latents, timestep, text, control, scale) -> np.nda
 
 def test_refiner_json_is_what_the_export_writes(meta, models):
     transformer, vae = models
-    counts = {"transformer": sum(p.numel() for p in transformer.parameters()), "vae": sum(p.numel() for p in vae.parameters())}
-    expected = export.manifest(configs.TINY, meta["source"], "fused", "f32", counts, meta["files"]["lora"])
+    counts = {
+        "transformer": sum(p.numel() for p in transformer.parameters()),
+        "vae": sum(p.numel() for p in vae.parameters()),
+        "text_encoder": sum(p.numel() for p in text.build_text_encoder(text.UMT5_TINY, 6).parameters()),
+    }
+    expected = export.manifest(configs.TINY, meta["source"], "fused", "f32", counts, meta["files"]["lora"], text.UMT5_TINY)
     expected["diffusers_config"] = {"transformer": export._config_dict(transformer), "vae": export._config_dict(vae)}
     assert json.loads(json.dumps(expected)) == meta
 
@@ -91,6 +95,38 @@ def test_transformer_initializers_are_the_parameters_by_name_shape_and_value(mod
 def test_fixture_uses_fused_attention():
     ops = {n.op_type for n in onnx.load(str(FIXTURE / "transformer.onnx")).graph.node}
     assert "MultiHeadAttention" in ops and "Softmax" not in ops
+
+
+# ----------------------------------------------------------------------------- the text side
+
+
+def test_tokenizer_is_the_one_the_export_trains():
+    committed = json.loads((FIXTURE / "tokenizer.json").read_text())
+    assert json.loads(text.tiny_tokenizer().to_str()) == committed
+    assert [committed["model"]["vocab"][i][0] for i in range(3)] == ["<pad>", "</s>", "<unk>"]
+
+
+def test_text_encoder_graph_reproduces_the_pipelines_embeddings():
+    """ONNX Runtime on the graph, fed the reference token ids, gives encode_prompt's embeddings on the
+    real tokens (1e-5; measured ~7e-7); the reference's tokens are what the tokenizer gives today."""
+    ref = json.loads((FIXTURE / "reference" / "text.json").read_text())
+    embeddings = np.load(FIXTURE / "reference" / "text.npz")["embeddings"]
+    tokenizer = text.fast_tokenizer(FIXTURE / "tokenizer.json")
+    sess = session(FIXTURE / "text_encoder.onnx")
+    assert {i.name: i.type for i in sess.get_inputs()} == {"input_ids": "tensor(int64)", "attention_mask": "tensor(int64)"}
+    encoder = text.build_text_encoder(text.UMT5_TINY, 6)
+    for case, expected in zip(ref["cases"], embeddings, strict=True):
+        again = tokenizer([case["clean"]], padding="max_length", max_length=ref["tokens"], truncation=True)
+        assert again["input_ids"][0] == case["input_ids"], case["caption"]
+        ids = np.array([case["input_ids"]], np.int64)
+        mask = np.array([case["attention_mask"]], np.int64)
+        n = int(mask.sum())
+        hidden = sess.run(None, {"input_ids": ids, "attention_mask": mask})[0][0]
+        np.testing.assert_allclose(hidden[:n], expected[:n], atol=1e-5, rtol=0, err_msg=case["caption"])
+        assert not expected[n:].any()
+        with torch.no_grad():
+            torch_hidden = encoder(input_ids=torch.from_numpy(ids), attention_mask=torch.from_numpy(mask)).last_hidden_state[0].numpy()
+        np.testing.assert_allclose(torch_hidden[:n], expected[:n], atol=1e-6, rtol=0)
 
 
 # ----------------------------------------------------------------------------- graphs vs PyTorch
@@ -138,7 +174,10 @@ def test_diffusers_checkout_exports_a_package_with_plain_attention_and_external_
     transformer.save_pretrained(ckpt / "transformer")
     vae.save_pretrained(ckpt / "vae")
     reference.unipc(3.0).save_pretrained(ckpt / "scheduler")
-    args = ["--diffusers", str(ckpt), "--frames", "5", "--height", "16", "--width", "32", "--text-tokens", "8"]
+    encoder = text.build_text_encoder(text.UMT5_TINY, 6)
+    encoder.save_pretrained(ckpt / "text_encoder")
+    text.fast_tokenizer(FIXTURE / "tokenizer.json").save_pretrained(ckpt / "tokenizer")
+    args = ["--diffusers", str(ckpt), "--frames", "5", "--height", "16", "--width", "32", "--text-tokens", "8", "--text-encoder"]
     assert export.main([*args, "--attention", "plain", "--external-data", "--out", str(out)]) == 0
     meta = json.loads((out / "refiner.json").read_text())
     assert meta["source"] == {"kind": "checkpoint", "path": str(ckpt)} and meta["attention"] == "plain"
@@ -168,6 +207,16 @@ def test_diffusers_checkout_exports_a_package_with_plain_attention_and_external_
     np.testing.assert_allclose(velocity, expected, atol=ONNX_ATOL, rtol=0)
     latents = session(out / "vae_encoder.onnx").run(None, {"video": video.numpy()})[0]
     np.testing.assert_allclose(latents, mode, atol=ONNX_ATOL, rtol=0)
+
+    # The text side: the checkout's tokenizer, and its encoder at the package's 8 tokens.
+    assert meta["files"]["text_encoder"] == "text_encoder.onnx" and meta["graphs"]["text_encoder"]["outputs"]["last_hidden_state"] == [1, 8, 32]
+    assert json.loads((out / "tokenizer.json").read_text())["model"] == json.loads((FIXTURE / "tokenizer.json").read_text())["model"]
+    ids = torch.tensor([[5, 17, 40, 1, 0, 0, 0, 0]])
+    mask = (torch.arange(8) < 4).long()[None]
+    with torch.no_grad():
+        hidden = encoder(input_ids=ids, attention_mask=mask).last_hidden_state.numpy()
+    got = session(out / "text_encoder.onnx").run(None, {"input_ids": ids.numpy(), "attention_mask": mask.numpy()})[0]
+    np.testing.assert_allclose(got, hidden, atol=ONNX_ATOL, rtol=0)
 
 
 def test_fp16_transformer_keeps_f32_inputs_and_outputs(tmp_path, models, refs):

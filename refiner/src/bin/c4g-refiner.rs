@@ -40,6 +40,10 @@ struct Args {
     /// ONNX Runtime intra-op threads (0: one per core).
     #[arg(long, env = "C4G_INTRA_OP_THREADS", default_value_t = 0)]
     intra_op_threads: usize,
+    /// Leave the package's text encoder unloaded (it can be larger than the rest): jobs must then
+    /// bring precomputed prompt embeddings, and jobs with text fail.
+    #[arg(long, env = "C4G_REFINER_NO_TEXT_ENCODER")]
+    no_text_encoder: bool,
 }
 
 #[tokio::main]
@@ -58,6 +62,7 @@ async fn main() -> ExitCode {
             scale: args.lora_scale,
         }),
         intra_op_threads: args.intra_op_threads,
+        skip_text_encoder: args.no_text_encoder,
         ..PipelineOptions::default()
     };
     let package = args.package.clone();

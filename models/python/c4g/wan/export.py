@@ -1,9 +1,10 @@
-"""Export tool: Wan2.1-VACE (diffusers' classes) → refiner package (refiner.json + three ONNX graphs).
+"""Export tool: Wan2.1-VACE (diffusers' classes) → refiner package (refiner.json + three ONNX graphs, and
+optionally umT5's encoder and tokenizer so that workers take captions).
 
     # the tiny random-weight fixture, with LoRA files and diffusers reference outputs (CPU, ~1 min):
     python -m c4g.wan.export --tiny --out ../fixtures/wan-vace-tiny
     # the real model from a diffusers checkout (Wan-AI/Wan2.1-VACE-1.3B-diffusers layout):
-    python -m c4g.wan.export --diffusers /path/to/Wan2.1-VACE-1.3B-diffusers --frames 81 --height 480 --width 832 --out DIR [--fp16] [--device cuda]
+    python -m c4g.wan.export --diffusers /path/to/Wan2.1-VACE-1.3B-diffusers --frames 81 --height 480 --width 832 --out DIR [--fp16] [--device cuda] [--text-encoder]
     # the real architecture with random weights (speed benchmarks):
     python -m c4g.wan.export --random-init --config 1.3b --out DIR [--fp16] [--device cuda]
 
@@ -31,18 +32,20 @@ VAE encoder ~4e-7, VAE decoder ~1e-5 max abs (tests assert 1e-4); f16 transforme
 - `patch_size` [1, 2, 2]; `tokens`: F' * (h / 2) * (w / 2), the transformer's sequence length.
 - `vace_layers`: the main blocks after which the VACE hints are added (one control_scale entry each).
 - `text`: `tokens` L and `dim` D of the text embeddings the transformer takes (umT5: 512 x 4096,
-  cut to the real token count and zero-padded).
+  cut to the real token count and zero-padded); `encoder` (when the package has one): how a caption
+  becomes that embedding (see c4g/wan/text.py).
 - `control`: how WanVACEPipeline builds the 96-channel control input (see `CONTROL`).
 - `timestep`: what the transformer's `timestep` input is (see `TIMESTEP`).
 - `sampler`: the defaults (`steps`, `shift`, `guidance_scale`) and the diffusers UniPC config
   (`scheduler`) that the reference pipeline runs use.
 - `attention` "fused" | "plain"; `precision` "f32" | "f16" (of the transformer's weights).
 - `files`: `transformer`, `vae_encoder`, `vae_decoder` (ONNX file names; `.data` beside them when
-  external); `lora` (tiny fixture only): `peft`, `peft_config`, `wan`, `name_map`, `rank`, `alpha`.
+  external); `text_encoder` and `tokenizer` (optional: the umT5 encoder graph and tokenizer.json); `lora` (tiny fixture only): `peft`, `peft_config`, `wan`, `name_map`, `rank`, `alpha`.
 - `graphs`: for each ONNX file, its inputs and outputs as {name: [shape]} (all f32).
 - `weight_names` "diffusers": transformer initializers are named as diffusers' parameters, [out, in].
-- `parameters`: transformer / vae parameter counts; `onnx`: opset and IR version; `diffusers_version`.
-- `diffusers_config`: {"transformer": ..., "vae": ...}, the configs the models were built from.
+- `parameters`: transformer / vae (/ text_encoder) parameter counts; `onnx`: opset and IR version; `diffusers_version`.
+- `diffusers_config`: {"transformer": ..., "vae": ...}, the configs the models were built from;
+  `text_encoder_config`: the umT5 config (transformers' UMT5Config), when there is an encoder.
 """
 
 from __future__ import annotations
@@ -56,9 +59,11 @@ from pathlib import Path
 import torch
 
 from . import lora as lora_mod
-from . import onnx_graphs, reference
+from . import onnx_graphs, reference, text
 from .configs import PRESETS, TINY, RefinerConfig, build_transformer, build_vae
 
+TEXT_ENCODER_FILE = "text_encoder.onnx"
+TOKENIZER_FILE = "tokenizer.json"
 LORA_RANK = 4
 LORA_ALPHA = 6.0  # scale 1.5: a file that ignores alpha (scale 1) is caught
 
@@ -106,9 +111,17 @@ def graph_signatures(cfg: RefinerConfig) -> dict:
     }
 
 
-def manifest(cfg: RefinerConfig, source: dict, attention: str, precision: str, counts: dict, lora: dict | None = None) -> dict:
+def manifest(cfg: RefinerConfig, source: dict, attention: str, precision: str, counts: dict, lora: dict | None = None, text_encoder: dict | None = None) -> dict:
+    """refiner.json. `text_encoder`: the umT5 config when the package has the encoder and tokenizer."""
     mean, std = cfg.vae["latents_mean"], cfg.vae["latents_std"]
     files = {"transformer": "transformer.onnx", "vae_encoder": "vae_encoder.onnx", "vae_decoder": "vae_decoder.onnx"}
+    graphs = graph_signatures(cfg)
+    text_spec: dict = {"tokens": cfg.text_tokens, "dim": cfg.transformer["text_dim"]}
+    if text_encoder is not None:
+        files["text_encoder"] = TEXT_ENCODER_FILE
+        files["tokenizer"] = TOKENIZER_FILE
+        graphs["text_encoder"] = text.graph_signature(cfg.text_tokens, cfg.transformer["text_dim"])
+        text_spec["encoder"] = text.manifest_entry(cfg.text_tokens)
     if lora is not None:
         files["lora"] = lora
     return {
@@ -135,19 +148,20 @@ def manifest(cfg: RefinerConfig, source: dict, attention: str, precision: str, c
         "patch_size": list(cfg.transformer["patch_size"]),
         "tokens": cfg.tokens,
         "vace_layers": list(cfg.transformer["vace_layers"]),
-        "text": {"tokens": cfg.text_tokens, "dim": cfg.transformer["text_dim"]},
+        "text": text_spec,
         "control": CONTROL,
         "timestep": TIMESTEP,
         "sampler": {"steps": cfg.steps, "shift": cfg.shift, "guidance_scale": cfg.guidance_scale, "scheduler": {"class": "UniPCMultistepScheduler", **cfg.scheduler}},
         "attention": attention,
         "precision": precision,
         "files": files,
-        "graphs": graph_signatures(cfg),
+        "graphs": graphs,
         "weight_names": "diffusers",
         "parameters": counts,
         "onnx": {"opset": onnx_graphs.OPSET, "ir_version": onnx_graphs.IR_VERSION},
         "diffusers_version": reference._diffusers_version(),
         "diffusers_config": {"transformer": _jsonable(cfg.transformer), "vae": _jsonable(cfg.vae)},
+        **({"text_encoder_config": _jsonable(text_encoder)} if text_encoder is not None else {}),
     }
 
 
@@ -210,8 +224,20 @@ def export_tiny(out: Path, seed: int = 0, attention: str = "fused") -> dict:
     reference.save_npz(ref / "transformer.npz", reference.transformer_case(transformer, cfg, seed + 4))
     reference.save_npz(ref / "vae.npz", reference.vae_case(vae, cfg, seed + 5))
 
+    # The text side: a tiny umT5 and tokenizer, and captions through the pipeline's encode_prompt.
+    text_encoder = text.build_text_encoder(text.UMT5_TINY, seed + 6)
+    text.tiny_tokenizer().save(str(out / TOKENIZER_FILE))
+    text_ref, text_arrays = reference.text_case(text.fast_tokenizer(out / TOKENIZER_FILE), text_encoder, cfg.text_tokens)
+    reference.write_json(ref / "text.json", text_ref)
+    reference.save_npz(ref / "text.npz", text_arrays)
+    text.export_text_encoder(text_encoder, cfg.text_tokens, out / TEXT_ENCODER_FILE, compact=True)
+
     export_models(copy.deepcopy(transformer), copy.deepcopy(vae), cfg, out, attention, compact=True)
-    counts = {"transformer": sum(p.numel() for p in transformer.parameters()), "vae": sum(p.numel() for p in vae.parameters())}
+    counts = {
+        "transformer": sum(p.numel() for p in transformer.parameters()),
+        "vae": sum(p.numel() for p in vae.parameters()),
+        "text_encoder": sum(p.numel() for p in text_encoder.parameters()),
+    }
     lora_files = {
         "peft": "lora/peft/adapter_model.safetensors",
         "peft_config": "lora/peft/adapter_config.json",
@@ -220,7 +246,7 @@ def export_tiny(out: Path, seed: int = 0, attention: str = "fused") -> dict:
         "rank": LORA_RANK,
         "alpha": LORA_ALPHA,
     }
-    meta = manifest(cfg, {"kind": "random-init", "seed": seed, "config": "tiny"}, attention, "f32", counts, lora_files)
+    meta = manifest(cfg, {"kind": "random-init", "seed": seed, "config": "tiny"}, attention, "f32", counts, lora_files, text.UMT5_TINY)
     meta["diffusers_config"] = {"transformer": _config_dict(transformer), "vae": _config_dict(vae)}
     (out / "refiner.json").write_text(json.dumps(meta, indent=2) + "\n")
     (out / "README.md").write_text(package_readme(meta))
@@ -314,10 +340,33 @@ def export_real(args) -> dict:
     external = True if args.external_data else None
     export_models(transformer, vae, cfg, out, args.attention, external)
     counts = {"transformer": sum(p.numel() for p in transformer.parameters()), "vae": sum(p.numel() for p in vae.parameters())}
-    meta = manifest(cfg, source, args.attention, "f16" if args.fp16 else "f32", counts)
+    text_config = None
+    if args.text_encoder:
+        encoder, text_config = export_real_text_encoder(args, cfg, out)
+        counts["text_encoder"] = sum(p.numel() for p in encoder.parameters())
+    meta = manifest(cfg, source, args.attention, "f16" if args.fp16 else "f32", counts, text_encoder=text_config)
     (out / "refiner.json").write_text(json.dumps(meta, indent=2) + "\n")
     (out / "README.md").write_text(package_readme(meta))
     return meta
+
+
+def export_real_text_encoder(args, cfg: RefinerConfig, out: Path):
+    """umT5's encoder (f32: umT5 overflows in f16) and tokenizer: from the checkout's text_encoder/ and
+    tokenizer/, or random weights at umT5-XXL's size with the tiny tokenizer (speed only)."""
+    if args.diffusers:
+        from transformers import AutoTokenizer, UMT5EncoderModel
+
+        root = Path(args.diffusers)
+        encoder = UMT5EncoderModel.from_pretrained(root / "text_encoder", torch_dtype=torch.float32).eval()
+        AutoTokenizer.from_pretrained(root / "tokenizer").backend_tokenizer.save(str(out / TOKENIZER_FILE))
+    else:
+        encoder = text.build_text_encoder(text.UMT5_XXL if args.config == "1.3b" else text.UMT5_TINY, args.seed + 6)
+        text.tiny_tokenizer().save(str(out / TOKENIZER_FILE))
+    if encoder.config.d_model != cfg.transformer["text_dim"]:
+        raise ValueError(f"the text encoder is {encoder.config.d_model} wide; the transformer takes {cfg.transformer['text_dim']}")
+    encoder.to(args.device)
+    text.export_text_encoder(encoder, cfg.text_tokens, out / TEXT_ENCODER_FILE, external_data=True if args.external_data else None)
+    return encoder, {key: getattr(encoder.config, key) for key in text.UMT5_XXL}
 
 
 # ----------------------------------------------------------------------------- READMEs
@@ -351,6 +400,7 @@ def package_readme(meta: dict) -> str:
         sig("transformer"),
         sig("vae_encoder"),
         sig("vae_decoder"),
+        *([sig("text_encoder"), f"- `{meta['files']['tokenizer']}`: the umT5 tokenizer (Hugging Face tokenizers JSON)."] if "text_encoder" in meta["files"] else []),
         "",
         "- `timestep` is the scheduler's timestep as diffusers feeds it: floor(sigma * 1000) with UniPC, sigma * 1000 with FlowMatchEuler.",
         "- The VAE graphs take and give UN-normalised latents: normalised = (mode - mean) * (1 / std); decoder input = latents / (1 / std) + mean.",
@@ -434,6 +484,15 @@ Stock PyTorch transformer on random inputs: `latents` {lat}, `timestep` [1] (937
 ## vae.npz
 `video` [1, 3, F, H, W] uniform in [-1, 1] → `latents_mode` {lat} (posterior mode, un-normalised);
 `latents` {lat} standard normal → `video_decoded` [1, 3, F, H, W].
+
+## text.json, text.npz
+Captions through `WanVACEPipeline(tokenizer=T5TokenizerFast(tokenizer.json), text_encoder=UMT5EncoderModel
+(tiny, random weights)).encode_prompt(prompt, max_sequence_length={L})` (ftfy installed, as prompt_clean needs).
+- text.json `cases`: per caption (c4g/wan/reference.py `CAPTIONS`): `caption`, `clean` (prompt_clean's output),
+  `input_ids` and `attention_mask` ({L} each: the tokenizer with padding="max_length", truncation=True);
+  `clean_cases`: 300 [text, prompt_clean(text)] pairs of random strings made of `CLEAN_PIECES`.
+- text.npz `embeddings` [cases, {L}, {D}]: the prompt embeddings (hidden states of the real tokens, zeros after);
+  `negative_default` [{L}, {D}]: the negative embedding encode_prompt makes when none is given (the empty prompt).
 """
 
 
@@ -458,6 +517,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--attention", choices=["fused", "plain"], default="fused")
     parser.add_argument("--external-data", action="store_true", help="weights in .onnx.data even under 2 GB")
     parser.add_argument("--device", default="cpu", help="where to trace (cuda is much faster at real sizes)")
+    parser.add_argument("--text-encoder", action="store_true", help="also export umT5's encoder (~23 GB in f32) and tokenizer, so workers take captions")
     args = parser.parse_args(argv)
     if args.tiny:
         meta = export_tiny(Path(args.out), args.seed, args.attention)

@@ -1,8 +1,9 @@
 """Reference outputs from diffusers for the refiner fixture: schedules, full WanVACEPipeline runs, and
 single-model cases, for the Rust pipeline to reproduce.
 
-Every run is on the CPU in float32 with the stock diffusers modules (float64 RoPE tables included), no
-text encoder (prompt embeddings are passed in), and the initial noise passed as `latents=`, so no random
+Every run is on the CPU in float32 with the stock diffusers modules (float64 RoPE tables included),
+prompt embeddings passed in (the text side has its own case: captions through the pipeline's
+`encode_prompt`), and the initial noise passed as `latents=`, so no random
 number generator has to be matched. What each file holds is in `CASES` / `README` below and in the
 fixture's reference/README.md.
 """
@@ -244,6 +245,70 @@ def vae_case(vae, cfg: RefinerConfig, seed: int) -> dict[str, np.ndarray]:
         mode = vae.encode(video).latent_dist.mode()
         decoded = vae.decode(latents).sample
     return {"video": video.numpy(), "latents_mode": mode.numpy(), "latents": latents.numpy(), "video_decoded": decoded.numpy()}
+
+
+# Captions for the text-side reference: plain ones, and each kind of clean-up diffusers' prompt_clean does
+# (HTML entities, nested and in a line with a literal "<"; whitespace runs; curly quotes, ligatures, full
+# width forms, decomposed accents, terminal escapes and control characters, which ftfy.fix_text repairs),
+# the empty negative prompt, one longer than the token budget, and a script the tiny vocabulary lacks.
+CAPTIONS = [
+    "A red cube slides across a wooden table while the camera slowly orbits the scene.",
+    "  two spheres\troll  over a\nchecked floor;\r\nthe camera   stays still.  ",
+    "Tom &amp; Jerry &lt;run&gt; &quot;fast&quot; &#39;here&#39; &amp;amp;lt;ok&amp;amp;gt; &eacute;t&eacute;",
+    "a <b>bold</b> &amp;amp;amp; line\nthen &amp;amp;amp; another",
+    "\u201cQuoted\u201d \u2018single\u2019 it\u2019s \ufb01ne \ufb02owers \uff26\uff35\uff2c\uff2c\u3000wide cafe\u0301",
+    "\x1b[31mred\x1b[0m light\x07 \ufeffand a\x00 bell\u2028next line",
+    "",
+    "A dog runs across a green lawn toward a fence, chasing a ball, while a cyclist rides past a row of trees.",
+    "\u4e00\u53ea\u732b\u5728\u684c\u5b50\u4e0a\u8df3 (a cat jumps on a table)",
+]
+
+
+# Pieces of random strings for the clean-up alone (`clean_cases`): entities with and without ';',
+# nested, numeric and invalid; markup; each kind of whitespace and line break; C1 controls; curly
+# quotes; ligatures; full width; decomposed accents; terminal codes; control characters.
+# Left out, as the Rust side does not repair them: mojibake and all-caps entity names (ftfy's). The
+# digraph U+01C4 is left out too: it spells "DŽ", and "Ž" beside a C1 control looks like mojibake to
+# ftfy, which then re-decodes it.
+CLEAN_PIECES = [
+    "&amp;", "&amp;amp;", "&lt;", "&gt;", "<", ">", "&copy", "&copyright", "&#39", "&#x27;", "&#0;", "&#128;",
+    "&#x1F600;", "&#xD800;", "&#1114112;", "&eacute;", "&nbsp;", "&notit;", "&not", "&;", "&#;", "&#x;",
+    " ", "  ", "\t", "\n", "\r\n", "\r", "\u2028", "\x85", "\x93", "\x81", "\u201c", "\u2019", "\u02bc",
+    "\ufb01", "\ufb05", "\u01c9", "\uff21", "\uff64", "\u3000", "e\u0301", "\x1b[31m", "\x1b[0;1m", "\x1b",
+    "\x00", "\x07", "\x1c", "\ufeff", "\u200b", "\u206a", "word", "Cat", "\u03b4", "\u732b", ";", "#", "&",
+]
+
+
+def clean_cases(count: int = 300, seed: int = 0) -> list[list[str]]:
+    """[text, prompt_clean(text)] for random strings of 1-8 `CLEAN_PIECES`."""
+    from diffusers.pipelines.wan.pipeline_wan_vace import prompt_clean
+
+    rng = np.random.default_rng(seed)
+    cases = []
+    for _ in range(count):
+        text = "".join(CLEAN_PIECES[i] for i in rng.integers(0, len(CLEAN_PIECES), rng.integers(1, 9)))
+        cases.append([text, prompt_clean(text)])
+    return cases
+
+
+def text_case(tokenizer, text_encoder, tokens: int) -> tuple[dict, dict[str, np.ndarray]]:
+    """`CAPTIONS` through WanVACEPipeline.encode_prompt (prompt_clean, tokenizer, encoder, cut and pad):
+    the cleaned text, token ids and masks (JSON) and the embeddings (npz)."""
+    from diffusers import WanVACEPipeline
+    from diffusers.pipelines.wan.pipeline_wan_vace import prompt_clean
+
+    pipe = WanVACEPipeline(tokenizer=tokenizer, text_encoder=text_encoder, vae=None, scheduler=unipc(3.0), transformer=None)
+    cases, embeddings = [], []
+    for caption in CAPTIONS:
+        clean = prompt_clean(caption)
+        ids = tokenizer([clean], padding="max_length", max_length=tokens, truncation=True, add_special_tokens=True, return_attention_mask=True)
+        with torch.no_grad():
+            embeds, _ = pipe.encode_prompt(prompt=caption, do_classifier_free_guidance=False, max_sequence_length=tokens, device="cpu")
+        cases.append({"caption": caption, "clean": clean, "input_ids": ids["input_ids"][0], "attention_mask": ids["attention_mask"][0]})
+        embeddings.append(embeds[0].numpy())
+    with torch.no_grad():
+        _, negative = pipe.encode_prompt(prompt=CAPTIONS[0], do_classifier_free_guidance=True, max_sequence_length=tokens, device="cpu")
+    return {"tokens": tokens, "cases": cases, "clean_cases": clean_cases()}, {"embeddings": np.stack(embeddings), "negative_default": negative[0].numpy()}
 
 
 def save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
