@@ -98,21 +98,22 @@ impl RefineRequest {
                 )));
             }
         }
-        for (name, text, embedding) in [
-            ("caption", &self.caption, self.text_embedding.is_some()),
+        for (name, text, other, has_other) in [
+            (
+                "caption",
+                &self.caption,
+                "text_embedding",
+                self.text_embedding.is_some(),
+            ),
             (
                 "negative_prompt",
                 &self.negative_prompt,
+                "negative_embedding",
                 self.negative_embedding.is_some(),
             ),
         ] {
             let Some(text) = text else { continue };
-            if embedding {
-                let other = if name == "caption" {
-                    "text_embedding"
-                } else {
-                    "negative_embedding"
-                };
+            if has_other {
                 return Err(ApiError::invalid(format!(
                     "give {name} or {other}, not both: the embedding would win and the text be ignored"
                 )));
