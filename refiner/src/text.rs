@@ -361,8 +361,9 @@ fn plain_char(c: char) -> Vec<char> {
         // Curly quotes (and the modifier apostrophe) to straight ones.
         '\u{02bc}' | '\u{2018}'..='\u{201b}' => "'",
         '\u{201c}'..='\u{201f}' => "\"",
-        // Line and paragraph separators, and a lone carriage return, to a line feed.
-        '\r' | '\u{2028}' | '\u{2029}' | '\u{0085}' => "\n",
+        // Line and paragraph separators, and a lone carriage return, to a line feed (ftfy's U+0085
+        // never gets here: it was read as Windows-1252 first).
+        '\r' | '\u{2028}' | '\u{2029}' => "\n",
         // The ideographic space, and full- and half-width forms, to their usual width.
         '\u{3000}' => " ",
         '\u{ff01}'..='\u{ffef}' => return c.nfkc().collect(),
