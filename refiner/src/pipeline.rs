@@ -487,13 +487,13 @@ fn tensor<'a>(what: &str, shape: &[usize], data: &'a [f32]) -> Result<TensorRef<
         .map_err(RefinerError::ort(format!("preparing the {what} tensor")))
 }
 
-fn lock(session: &Mutex<Session>) -> MutexGuard<'_, Session> {
+pub(crate) fn lock(session: &Mutex<Session>) -> MutexGuard<'_, Session> {
     // A panic while a run held the lock leaves the session itself intact.
     session.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 /// The named f32 output of a run, checked against its expected shape.
-fn output<'o>(
+pub(crate) fn output<'o>(
     outputs: &'o SessionOutputs<'_>,
     graph: &str,
     name: &str,

@@ -9,13 +9,14 @@
 //! pipeline's own `encode_prompt`; `tests/text_reference.rs` holds this module to them.
 
 use std::path::Path;
-use std::sync::{Mutex, PoisonError};
+use std::sync::{Mutex, OnceLock};
 
 use ort::session::Session;
 use ort::value::TensorRef;
 use tokenizers::{Tokenizer, TruncationParams};
 use unicode_normalization::UnicodeNormalization;
 
+use crate::pipeline::{lock, output};
 use crate::runtime::{SessionConfig, create_session};
 use crate::{RefinerError, Result};
 
@@ -42,6 +43,8 @@ pub struct TextEncoder {
     tokenizer: Tokenizer,
     pad_id: i64,
     session: Mutex<Session>,
+    /// The empty prompt's embedding, once computed: every job without a negative prompt needs it.
+    empty: OnceLock<Vec<f32>>,
     tokens: usize,
     dim: usize,
 }
@@ -84,6 +87,7 @@ impl TextEncoder {
             tokenizer: tokenizer_model,
             pad_id: i64::from(pad_id),
             session: Mutex::new(create_session(graph, config)?),
+            empty: OnceLock::new(),
             tokens,
             dim,
         })
@@ -107,30 +111,35 @@ impl TextEncoder {
     /// The caption's prompt embedding, `[L, D]`: the encoder's hidden states of the real tokens,
     /// zeros after them.
     pub fn embed(&self, caption: &str) -> Result<Vec<f32>> {
+        let empty = clean_caption(caption).is_empty();
+        if empty && let Some(embedding) = self.empty.get() {
+            return Ok(embedding.clone());
+        }
+        let embedding = self.run_encoder(caption)?;
+        if empty {
+            let _ = self.empty.set(embedding.clone());
+        }
+        Ok(embedding)
+    }
+
+    fn run_encoder(&self, caption: &str) -> Result<Vec<f32>> {
         let tokens = self.tokenize(caption)?;
         let shape = vec![1, self.tokens];
         let ids = TensorRef::from_array_view((shape.clone(), &tokens.ids[..]))
             .map_err(RefinerError::ort("preparing the token ids"))?;
         let mask = TensorRef::from_array_view((shape, &tokens.mask[..]))
             .map_err(RefinerError::ort("preparing the attention mask"))?;
-        let mut session = self.session.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut session = lock(&self.session);
         let outputs = session
             .run(ort::inputs![INPUT_IDS => ids, ATTENTION_MASK => mask])
             .map_err(RefinerError::ort("running the text encoder"))?;
-        let value = outputs.get(HIDDEN_STATE).ok_or_else(|| {
-            RefinerError::ModelOutput(format!("the text encoder returned no {HIDDEN_STATE:?}"))
-        })?;
-        let (shape, data) = value
-            .try_extract_tensor::<f32>()
-            .map_err(RefinerError::ort("reading the text encoder's output"))?;
-        let expected = [1, self.tokens as i64, self.dim as i64];
-        if **shape != expected {
-            return Err(RefinerError::ModelOutput(format!(
-                "the text encoder's output has shape {:?}, expected {expected:?}",
-                &**shape
-            )));
-        }
-        let mut embedding = data.to_vec();
+        let hidden = output(
+            &outputs,
+            "text encoder",
+            HIDDEN_STATE,
+            &[1, self.tokens, self.dim],
+        )?;
+        let mut embedding = hidden.to_vec();
         embedding[tokens.len * self.dim..].fill(0.0);
         Ok(embedding)
     }

@@ -5,12 +5,12 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::bail;
-use c4g_client::{Error, Job, RefineRequest, Sampler, TrajectoryPreset};
+use c4g_client::{Error, Job, RefineRequest, Sampler};
 use futures_util::StreamExt;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::jobs::job_summary;
-use super::render::parse_trajectory;
+use super::render::trajectory_arg;
 use super::{Context, emit, emit_json, emit_line, write_file};
 
 /// How often in a row a lost event stream is followed again before giving up.
@@ -81,17 +81,7 @@ pub struct Args {
 }
 
 pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
-    let trajectory = match (args.orbit, &args.trajectory) {
-        (Some(angle_degrees), _) => Some(
-            TrajectoryPreset::Orbit {
-                depth: args.depth,
-                angle_degrees,
-            }
-            .to_json(),
-        ),
-        (None, Some(text)) => Some(parse_trajectory(text)?),
-        (None, None) => None,
-    };
+    let trajectory = trajectory_arg(args.orbit, args.depth, args.trajectory.as_deref())?;
     let request = RefineRequest {
         trajectory,
         start: args.start,

@@ -84,17 +84,7 @@ pub struct Args {
 }
 
 pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
-    let trajectory = match (args.orbit, &args.trajectory) {
-        (Some(angle_degrees), _) => Some(
-            TrajectoryPreset::Orbit {
-                depth: args.depth,
-                angle_degrees,
-            }
-            .to_json(),
-        ),
-        (None, Some(text)) => Some(parse_trajectory(text)?),
-        (None, None) => None,
-    };
+    let trajectory = trajectory_arg(args.orbit, args.depth, args.trajectory.as_deref())?;
     let time = match (args.time, &trajectory) {
         (Some(t), _) => Some(t),
         (None, Some(_)) => None,
@@ -151,6 +141,25 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
         args.output.display(),
         details.join(", ")
     ))
+}
+
+/// The path `--orbit DEGREES [--depth D]` or `--trajectory` asks for (clap lets only one through).
+pub(super) fn trajectory_arg(
+    orbit: Option<f64>,
+    depth: f64,
+    trajectory: Option<&str>,
+) -> anyhow::Result<Option<serde_json::Value>> {
+    Ok(match (orbit, trajectory) {
+        (Some(angle_degrees), _) => Some(
+            TrajectoryPreset::Orbit {
+                depth,
+                angle_degrees,
+            }
+            .to_json(),
+        ),
+        (None, Some(text)) => Some(parse_trajectory(text)?),
+        (None, None) => None,
+    })
 }
 
 /// A trajectory preset from `--trajectory`: JSON, or `@FILE`. Only its shape is checked here
