@@ -21,63 +21,10 @@ pub struct GaussianFrame {
     pub gaussians: GaussianSet,
 }
 
-/// Float width of the values in a Gaussian payload. Half precision halves the bytes on the wire
-/// at about three decimal digits, plenty for viewing; the values arrive here as `f32` either way.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Precision {
-    /// 32-bit floats.
-    #[default]
-    F32,
-    /// 16-bit (IEEE half) floats.
-    F16,
-}
-
-impl Precision {
-    /// The API's name (`f32`, `f16`).
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Precision::F32 => "f32",
-            Precision::F16 => "f16",
-        }
-    }
-
-    /// Bytes per value.
-    pub fn value_bytes(self) -> usize {
-        match self {
-            Precision::F32 => 4,
-            Precision::F16 => 2,
-        }
-    }
-
-    /// The proto enum's value (`PRECISION_F32`, `PRECISION_F16`).
-    pub fn to_proto(self) -> c4g_proto::v1::Precision {
-        match self {
-            Precision::F32 => c4g_proto::v1::Precision::F32,
-            Precision::F16 => c4g_proto::v1::Precision::F16,
-        }
-    }
-}
-
-impl fmt::Display for Precision {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
-impl FromStr for Precision {
-    type Err = Error;
-
-    fn from_str(s: &str) -> Result<Self, Error> {
-        match s {
-            "f32" => Ok(Precision::F32),
-            "f16" => Ok(Precision::F16),
-            other => Err(Error::InvalidInput(format!(
-                "unknown precision {other:?} (f32 or f16)"
-            ))),
-        }
-    }
-}
+/// Float width of the values in a Gaussian payload: the renderer's `C4GS` codec's, so both ends
+/// name it alike. Half precision halves the bytes on the wire at about three decimal digits,
+/// plenty for viewing; the values arrive here as `f32` either way.
+pub use c4g_renderer::formats::c4gs::Precision;
 
 /// The formats `POST /v1/clips/{id}/gaussians` answers in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

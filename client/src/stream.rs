@@ -52,7 +52,7 @@ impl Client {
                 Spacing::Step(step) => proto::stream_gaussians_request::Spacing::Step(step),
                 Spacing::Fps(fps) => proto::stream_gaussians_request::Spacing::Fps(fps),
             }),
-            precision: options.precision.to_proto().into(),
+            precision: wire::proto_precision(options.precision).into(),
         };
         let mut grpc = self.grpc().await?;
         let frames = grpc

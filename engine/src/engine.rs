@@ -7,23 +7,22 @@
 //! ONNX Runtime, and every output against the contract after, so a caller sees a clear error
 //! rather than a runtime shape failure or a silently wrong scene.
 //!
-//! ONNX Runtime's sessions run through `&mut` in `ort` 2.0, so each session sits behind a mutex:
-//! the engine is `Send + Sync` and calls on one graph are serialised (ONNX Runtime already uses
-//! every core inside one run; more throughput means more engines or a GPU).
+//! Each graph is a `c4g_runtime::Graph`, its session behind a mutex (`ort` 2.0 runs sessions
+//! through `&mut`): the engine is `Send + Sync` and calls on one graph are serialised (ONNX
+//! Runtime already uses every core inside one run; more throughput means more engines or a GPU).
 
 use std::path::Path;
-use std::sync::{Mutex, MutexGuard, PoisonError};
 
 use c4g_renderer::{FeatureBlock, GaussianSet};
+use c4g_runtime::{Graph, RuntimeError, create_session};
 use image::RgbImage;
-use ort::session::{Session, SessionOutputs};
 use ort::value::TensorRef;
 
 use crate::encoding::{ContextFrame, Encoding, encoding_order};
 use crate::error::ShapeDim::{Fixed, Free};
 use crate::graph::{Contract, GAUSSIAN_CHANNELS};
+use crate::options::EngineOptions;
 use crate::package::{AttentionKind, Manifest, Package};
-use crate::runtime::{EngineOptions, create_session};
 use crate::time::NormalizedTimes;
 use crate::{EngineError, Result, preprocess};
 
@@ -34,9 +33,9 @@ const DEFAULT_DECODER_HEADS: usize = 16;
 pub struct Engine {
     package: Package,
     options: EngineOptions,
-    encoder: Mutex<Session>,
-    decoder: Mutex<Session>,
-    feature_decoder: Option<Mutex<Session>>,
+    encoder: Graph,
+    decoder: Graph,
+    feature_decoder: Option<Graph>,
 }
 
 impl std::fmt::Debug for Engine {
@@ -63,15 +62,19 @@ impl Engine {
             ));
         }
         let m = package.manifest();
-        let load = |path: &Path, contract: Contract| -> Result<Mutex<Session>> {
-            let session = create_session(path, &options)?;
+        let load = |name: &str, path: &Path, contract: Contract| -> Result<Graph> {
+            let session = create_session(path, &options.session)?;
             contract.check(&session, package.dir())?;
-            Ok(Mutex::new(session))
+            Ok(Graph::new(name, session))
         };
-        let encoder = load(&package.encoder_path(), Contract::encoder(m))?;
-        let decoder = load(&package.decoder_path(), Contract::decoder(m))?;
+        let encoder = load("encoder", &package.encoder_path(), Contract::encoder(m))?;
+        let decoder = load("decoder", &package.decoder_path(), Contract::decoder(m))?;
         let feature_decoder = match (package.feature_decoder_path(), m.feature_decoder_width()) {
-            (Some(path), Some(width)) => Some(load(&path, Contract::feature_decoder(m, width))?),
+            (Some(path), Some(width)) => Some(load(
+                "feature decoder",
+                &path,
+                Contract::feature_decoder(m, width),
+            )?),
             _ => None,
         };
         Ok(Self {
@@ -127,12 +130,12 @@ impl Engine {
         );
         let (p, c) = (m.tokens_per_frame, m.feature_width);
         let input = TensorRef::from_array_view(([t, 3, h, w], pixels.as_slice()))
-            .map_err(EngineError::ort("preparing the frames tensor"))?;
-        let mut session = lock(&self.encoder);
-        let outputs = session
-            .run(ort::inputs!["frames" => input])
-            .map_err(EngineError::ort("running the encoder"))?;
-        let features = output(&outputs, "encoder", "features", &[t, p, c])?.to_vec();
+            .map_err(RuntimeError::ort("preparing the frames tensor"))?;
+        let features = self
+            .encoder
+            .run(ort::inputs!["frames" => input], |outputs| {
+                Ok(outputs.f32("features", &[t, p, c])?.to_vec())
+            })?;
         let times = order.iter().map(|&i| frames[i].time).collect();
         Encoding::from_parts(times, order, features, [t, p, c])
     }
@@ -361,20 +364,19 @@ impl Engine {
     /// `gaussians` [B, N, 14] for one batch.
     fn run_decoder(&self, inputs: &DecoderInputs<'_>) -> Result<Vec<f32>> {
         let (features, context_times, target_times) = inputs.tensors()?;
-        let mut session = lock(&self.decoder);
-        let outputs = session
-            .run(ort::inputs![
-                "features" => features,
-                "context_times" => context_times,
-                "target_times" => target_times,
-            ])
-            .map_err(EngineError::ort("running the decoder"))?;
         let shape = [
             inputs.batch,
             self.manifest().gaussian_count,
             GAUSSIAN_CHANNELS,
         ];
-        Ok(output(&outputs, "decoder", "gaussians", &shape)?.to_vec())
+        let inputs = ort::inputs![
+            "features" => features,
+            "context_times" => context_times,
+            "target_times" => target_times,
+        ];
+        Ok(self.decoder.run(inputs, |outputs| {
+            Ok(outputs.f32("gaussians", &shape)?.to_vec())
+        })?)
     }
 
     /// `gaussian_features` [B, N, F] for one batch; `maps` is `[T, P, F]` in encoded order.
@@ -384,7 +386,7 @@ impl Engine {
         maps: &[f32],
         width: usize,
     ) -> Result<Vec<f32>> {
-        let Some(session) = &self.feature_decoder else {
+        let Some(graph) = &self.feature_decoder else {
             return Err(EngineError::NoFeatureDecoder {
                 package: self.manifest().name.clone(),
             });
@@ -392,18 +394,17 @@ impl Engine {
         let (features, context_times, target_times) = inputs.tensors()?;
         let [t, p, _] = inputs.shape;
         let maps = TensorRef::from_array_view(([t, p, width], maps))
-            .map_err(EngineError::ort("preparing the context feature maps"))?;
-        let mut session = lock(session);
-        let outputs = session
-            .run(ort::inputs![
-                "features" => features,
-                "context_times" => context_times,
-                "target_times" => target_times,
-                "context_feature_maps" => maps,
-            ])
-            .map_err(EngineError::ort("running the feature decoder"))?;
+            .map_err(RuntimeError::ort("preparing the context feature maps"))?;
         let shape = [inputs.batch, self.manifest().gaussian_count, width];
-        Ok(output(&outputs, "feature decoder", "gaussian_features", &shape)?.to_vec())
+        let inputs = ort::inputs![
+            "features" => features,
+            "context_times" => context_times,
+            "target_times" => target_times,
+            "context_feature_maps" => maps,
+        ];
+        Ok(graph.run(inputs, |outputs| {
+            Ok(outputs.f32("gaussian_features", &shape)?.to_vec())
+        })?)
     }
 }
 
@@ -433,7 +434,7 @@ impl<'a> DecoderInputs<'a> {
 
     /// Borrowed tensors of `features`, `context_times` and `target_times`.
     fn tensors(&self) -> Result<(TensorRef<'_, f32>, TensorRef<'_, f32>, TensorRef<'_, f32>)> {
-        let prepare = || EngineError::ort("preparing the decoder's inputs");
+        let prepare = || RuntimeError::ort("preparing the decoder's inputs");
         let [t, _, _] = self.shape;
         Ok((
             TensorRef::from_array_view((self.shape, self.features)).map_err(prepare())?,
@@ -442,38 +443,6 @@ impl<'a> DecoderInputs<'a> {
             TensorRef::from_array_view(([self.batch], self.target.as_slice())).map_err(prepare())?,
         ))
     }
-}
-
-fn lock(session: &Mutex<Session>) -> MutexGuard<'_, Session> {
-    // A panic while a run held the lock leaves the session itself intact.
-    session.lock().unwrap_or_else(PoisonError::into_inner)
-}
-
-/// The named f32 output of a run, checked against its expected shape.
-fn output<'o>(
-    outputs: &'o SessionOutputs<'_>,
-    graph: &str,
-    name: &str,
-    expected: &[usize],
-) -> Result<&'o [f32]> {
-    let value = outputs
-        .get(name)
-        .ok_or_else(|| EngineError::ModelOutput(format!("the {graph} returned no {name:?}")))?;
-    let (shape, data) = value
-        .try_extract_tensor::<f32>()
-        .map_err(EngineError::ort(format!("reading the {graph}'s {name:?}")))?;
-    let matches = shape.len() == expected.len()
-        && shape
-            .iter()
-            .zip(expected)
-            .all(|(&d, &e)| usize::try_from(d) == Ok(e));
-    if !matches || data.len() != expected.iter().product::<usize>() {
-        return Err(EngineError::ModelOutput(format!(
-            "the {graph}'s {name:?} has shape {:?}, expected {expected:?}",
-            &**shape
-        )));
-    }
-    Ok(data)
 }
 
 #[cfg(test)]

@@ -1,27 +1,14 @@
-//! The one error type of this crate, and the coarse kind a caller switches on.
+//! The one error type of this crate.
 //!
-//! The server maps [`ErrorKind`] to HTTP statuses and gRPC codes in one place; the message of
-//! each variant is written for the person who sent the request or deployed the package.
+//! The server maps each error's [`ErrorKind`] (shared with `c4g-refiner`, from `c4g-runtime`) to
+//! HTTP statuses and gRPC codes in one place; the message of each variant is written for the
+//! person who sent the request or deployed the package. Failures of ONNX Runtime itself (loading
+//! it, creating sessions, runs, an output off its contract) are a [`RuntimeError`], whole.
 
 use std::path::PathBuf;
 
+use c4g_runtime::{ErrorKind, RuntimeError};
 use thiserror::Error;
-
-/// What went wrong, grouped by who can fix it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum ErrorKind {
-    /// The request itself is wrong (bad times, wrong shapes, undecodable image): the caller fixes it.
-    InvalidInput,
-    /// The request is well-formed but this package or build cannot serve it (no feature decoder,
-    /// an execution provider not compiled in).
-    Unsupported,
-    /// The model package on disk is missing or malformed: the operator fixes it.
-    Package,
-    /// ONNX Runtime could not be loaded or failed while running: the operator fixes it.
-    Runtime,
-    /// The model produced something that breaks the output contract.
-    ModelOutput,
-}
 
 /// Every failure of the engine.
 #[derive(Debug, Error)]
@@ -50,35 +37,10 @@ pub enum EngineError {
         /// Which rule it breaks.
         reason: String,
     },
-    /// `ORT_DYLIB_PATH` is not set and no library path was given.
-    #[error(
-        "ONNX Runtime is not configured: set ORT_DYLIB_PATH to libonnxruntime.so (from the onnxruntime PyPI wheel, under onnxruntime/capi/)"
-    )]
-    RuntimeNotConfigured,
-    /// The ONNX Runtime library could not be loaded.
-    #[error("cannot load ONNX Runtime from {path}: {reason}")]
-    RuntimeLoad {
-        /// The library path tried.
-        path: PathBuf,
-        /// Why.
-        reason: String,
-    },
-    /// An ONNX Runtime call failed (session creation, run, tensor extraction).
-    #[error("ONNX Runtime failed while {context}: {source}")]
-    Ort {
-        /// What the engine was doing.
-        context: String,
-        /// ONNX Runtime's error.
-        source: ort::Error,
-    },
-    /// An execution provider this build or this ONNX Runtime cannot offer.
-    #[error("execution provider {provider} is unavailable: {reason}")]
-    ExecutionProviderUnavailable {
-        /// The provider asked for.
-        provider: String,
-        /// Why it cannot be used.
-        reason: String,
-    },
+    /// Loading ONNX Runtime, creating a session or running a graph failed, or a graph's output
+    /// breaks its contract.
+    #[error(transparent)]
+    Runtime(#[from] RuntimeError),
     /// No context times to normalise against.
     #[error("no context times: at least one context frame is needed")]
     EmptyContext,
@@ -148,12 +110,8 @@ impl EngineError {
             Self::Io { .. } | Self::Manifest { .. } | Self::InvalidPackage { .. } => {
                 ErrorKind::Package
             }
-            Self::RuntimeNotConfigured | Self::RuntimeLoad { .. } | Self::Ort { .. } => {
-                ErrorKind::Runtime
-            }
-            Self::ExecutionProviderUnavailable { .. } | Self::NoFeatureDecoder { .. } => {
-                ErrorKind::Unsupported
-            }
+            Self::Runtime(e) => e.kind(),
+            Self::NoFeatureDecoder { .. } => ErrorKind::Unsupported,
             Self::EmptyContext
             | Self::NonFiniteTime { .. }
             | Self::TargetOutsideContext { .. }
@@ -163,11 +121,6 @@ impl EngineError {
             | Self::Image(_) => ErrorKind::InvalidInput,
             Self::ModelOutput(_) => ErrorKind::ModelOutput,
         }
-    }
-
-    pub(crate) fn ort(context: impl Into<String>) -> impl FnOnce(ort::Error) -> Self {
-        let context = context.into();
-        move |source| Self::Ort { context, source }
     }
 
     pub(crate) fn shape(what: impl Into<String>, expected: &[ShapeDim], actual: &[usize]) -> Self {

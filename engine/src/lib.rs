@@ -11,26 +11,32 @@
 //! | [`package`] | `model.json` and the package contract |
 //! | [`preprocess`] | centre crop, Lanczos resize, value mapping |
 //! | [`time`] | the TimePolicy |
-//! | `runtime` | loading ONNX Runtime, engine options, sessions |
+//! | `options` | engine options: the sessions' ([`SessionOptions`]), the time policy, batching |
 //! | `encoding` | context frames in, encodings out |
 //! | `engine` | encode and decode |
 //! | `graph` | each ONNX graph's inputs and outputs, checked at load |
 //! | `error` | the crate's error type |
+//!
+//! ONNX Runtime itself (loading it once per process, sessions, locked runs, checked outputs, the
+//! [`ErrorKind`] this crate shares with `c4g-refiner`) is `c4g-runtime`'s; its names used here
+//! are re-exported.
 
 mod encoding;
 mod engine;
 mod error;
 mod graph;
+mod options;
 pub mod package;
 pub mod preprocess;
-mod runtime;
 pub mod time;
 
+pub use c4g_runtime::{
+    ErrorKind, ExecutionProvider, ORT_DYLIB_PATH, RuntimeError, SessionOptions, init_runtime,
+    runtime_initialized,
+};
 pub use encoding::{ContextFrame, Encoding};
 pub use engine::Engine;
-pub use error::{EngineError, ErrorKind, Result};
+pub use error::{EngineError, Result};
+pub use options::EngineOptions;
 pub use package::{Manifest, Package};
-pub use runtime::{
-    EngineOptions, ExecutionProvider, ORT_DYLIB_PATH, init_runtime, runtime_initialized,
-};
 pub use time::{NormalizedTimes, TimePolicy};

@@ -1,28 +1,14 @@
-//! The one error type of this crate, and the coarse kind a caller switches on.
+//! The one error type of this crate.
 //!
-//! The worker reports [`ErrorKind`] back with a failed job; each variant's message is written for
-//! the person who sent the request or deployed the package.
+//! The worker reports each error's [`ErrorKind`] (shared with `c4g-engine`, from `c4g-runtime`)
+//! back with a failed job; each variant's message is written for the person who sent the request
+//! or deployed the package. Failures of ONNX Runtime itself (loading it, creating sessions, runs,
+//! an output off its contract) are a [`RuntimeError`], whole.
 
 use std::path::PathBuf;
 
+use c4g_runtime::{ErrorKind, RuntimeError};
 use thiserror::Error;
-
-/// What went wrong, grouped by who can fix it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum ErrorKind {
-    /// The request itself is wrong (frame count, sizes, steps): the caller fixes it.
-    InvalidInput,
-    /// The package on disk is missing or malformed: the operator fixes it.
-    Package,
-    /// The LoRA cannot be applied to this package: the operator fixes it.
-    Lora,
-    /// ONNX Runtime could not be loaded or failed while running: the operator fixes it.
-    Runtime,
-    /// A graph produced something that breaks the package contract.
-    ModelOutput,
-    /// The caller stopped the run through its progress callback.
-    Cancelled,
-}
 
 /// Every failure of the refiner.
 #[derive(Debug, Error)]
@@ -67,39 +53,16 @@ pub enum RefinerError {
         /// What is wrong, naming the key.
         reason: String,
     },
-    /// `ORT_DYLIB_PATH` is not set and no library path was given.
-    #[error(
-        "ONNX Runtime is not configured: set ORT_DYLIB_PATH to libonnxruntime.so (from the onnxruntime PyPI wheel, under onnxruntime/capi/)"
-    )]
-    RuntimeNotConfigured,
-    /// The ONNX Runtime library could not be loaded.
-    #[error("cannot load ONNX Runtime from {path}: {reason}")]
-    RuntimeLoad {
-        /// The library path tried.
-        path: PathBuf,
-        /// Why.
-        reason: String,
-    },
-    /// An ONNX Runtime call failed (session creation, run, tensor extraction).
-    #[error("ONNX Runtime failed while {context}: {source}")]
-    Ort {
-        /// What the refiner was doing.
-        context: String,
-        /// ONNX Runtime's error.
-        source: ort::Error,
-    },
-    /// An execution provider this build or this ONNX Runtime cannot offer.
-    #[error("execution provider {provider} is unavailable: {reason}")]
-    ExecutionProviderUnavailable {
-        /// The provider asked for.
-        provider: String,
-        /// Why it cannot be used.
-        reason: String,
-    },
+    /// Loading ONNX Runtime, creating a session or running a graph failed, or a graph's output
+    /// breaks its contract.
+    #[error(transparent)]
+    Runtime(#[from] RuntimeError),
     /// A request that does not fit the package or makes no sense.
     #[error("invalid refine request: {0}")]
     InvalidRequest(String),
-    /// A graph returned a tensor of the wrong name, type or shape.
+    /// A refinement's result that cannot be handed back (a frame of the wrong size, PNG
+    /// encoding, a refinement thread that panicked); a graph's own output off its contract is a
+    /// [`RuntimeError::ModelOutput`] instead.
     #[error("model output: {0}")]
     ModelOutput(String),
     /// The progress callback asked to stop; `completed` steps had run.
@@ -116,30 +79,19 @@ pub enum RefinerError {
 pub type Result<T, E = RefinerError> = std::result::Result<T, E>;
 
 impl RefinerError {
-    /// Who can fix it.
+    /// Who can fix it. A LoRA that cannot be applied is [`ErrorKind::Package`]: the LoRA is part
+    /// of what the operator deployed (see [`ErrorKind`]).
     pub fn kind(&self) -> ErrorKind {
         match self {
             Self::Io { .. }
             | Self::Json { .. }
             | Self::InvalidPackage { .. }
-            | Self::Onnx { .. } => ErrorKind::Package,
-            Self::Lora { .. } => ErrorKind::Lora,
-            Self::RuntimeNotConfigured
-            | Self::RuntimeLoad { .. }
-            | Self::Ort { .. }
-            | Self::ExecutionProviderUnavailable { .. } => ErrorKind::Runtime,
+            | Self::Onnx { .. }
+            | Self::Lora { .. } => ErrorKind::Package,
+            Self::Runtime(e) => e.kind(),
             Self::InvalidRequest(_) => ErrorKind::InvalidInput,
             Self::ModelOutput(_) => ErrorKind::ModelOutput,
             Self::Cancelled { .. } => ErrorKind::Cancelled,
-        }
-    }
-
-    /// A `map_err` adapter for ONNX Runtime errors, with what the refiner was doing.
-    pub(crate) fn ort<E: Into<ort::Error>>(context: impl Into<String>) -> impl FnOnce(E) -> Self {
-        let context = context.into();
-        move |source| Self::Ort {
-            context,
-            source: source.into(),
         }
     }
 

@@ -21,7 +21,7 @@ pub const MANIFEST_FILE: &str = "refiner.json";
 
 /// `refiner.json`.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
-pub struct Manifest {
+pub struct RefinerManifest {
     /// Always [`FORMAT`].
     pub format: String,
     /// Always [`FORMAT_VERSION`].
@@ -90,7 +90,7 @@ pub struct Files {
     pub tokenizer: Option<String>,
 }
 
-impl Manifest {
+impl RefinerManifest {
     /// Values per `[16, F', h, w]` latent tensor.
     pub fn latent_len(&self) -> usize {
         let l = &self.latent;
@@ -158,18 +158,18 @@ impl Manifest {
 
 /// A package on disk: its directory and manifest, checked.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Package {
+pub struct RefinerPackage {
     dir: PathBuf,
-    manifest: Manifest,
+    manifest: RefinerManifest,
 }
 
-impl Package {
+impl RefinerPackage {
     /// Reads and checks `dir/refiner.json` and that the graphs it names exist.
     pub fn open(dir: impl AsRef<Path>) -> Result<Self> {
         let dir = dir.as_ref().to_path_buf();
         let path = dir.join(MANIFEST_FILE);
         let text = std::fs::read_to_string(&path).map_err(RefinerError::io(&path))?;
-        let manifest: Manifest =
+        let manifest: RefinerManifest =
             serde_json::from_str(&text).map_err(|source| RefinerError::Json {
                 path: path.clone(),
                 source,
@@ -202,7 +202,7 @@ impl Package {
     }
 
     /// The manifest.
-    pub fn manifest(&self) -> &Manifest {
+    pub fn manifest(&self) -> &RefinerManifest {
         &self.manifest
     }
 
@@ -262,7 +262,7 @@ mod tests {
     #[test]
     fn a_consistent_manifest_opens() {
         let dir = write_package(&manifest_json(9, 3));
-        let p = Package::open(dir.path()).unwrap();
+        let p = RefinerPackage::open(dir.path()).unwrap();
         let m = p.manifest();
         assert_eq!(
             (m.frames, m.latent.frames, m.latent_len()),
@@ -275,7 +275,7 @@ mod tests {
     #[test]
     fn a_latent_grid_that_does_not_match_the_video_is_refused() {
         let dir = write_package(&manifest_json(9, 2));
-        let err = Package::open(dir.path()).unwrap_err();
+        let err = RefinerPackage::open(dir.path()).unwrap_err();
         assert!(matches!(err, RefinerError::InvalidPackage { .. }), "{err}");
         assert!(err.to_string().contains("latent grid"), "{err}");
     }
@@ -288,9 +288,9 @@ mod tests {
         );
         let dir = write_package(&json);
         std::fs::write(dir.path().join("text_encoder.onnx"), b"").unwrap();
-        let err = Package::open(dir.path()).unwrap_err();
+        let err = RefinerPackage::open(dir.path()).unwrap_err();
         assert!(err.to_string().contains("tokenizer"), "{err}");
-        let p = Package::open(write_package(&manifest_json(9, 3)).path()).unwrap();
+        let p = RefinerPackage::open(write_package(&manifest_json(9, 3)).path()).unwrap();
         assert_eq!(p.text_encoder_paths(), None);
     }
 
@@ -298,7 +298,7 @@ mod tests {
     fn a_missing_graph_is_named() {
         let dir = write_package(&manifest_json(9, 3));
         std::fs::remove_file(dir.path().join("vae_decoder.onnx")).unwrap();
-        let err = Package::open(dir.path()).unwrap_err();
+        let err = RefinerPackage::open(dir.path()).unwrap_err();
         assert!(err.to_string().contains("vae_decoder.onnx"), "{err}");
     }
 }

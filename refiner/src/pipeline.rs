@@ -13,9 +13,8 @@
 
 use std::ops::ControlFlow;
 use std::path::Path;
-use std::sync::{Mutex, MutexGuard, PoisonError};
 
-use ort::session::{Session, SessionOutputs};
+use c4g_runtime::{Graph, RuntimeError, SessionOptions, create_session};
 use ort::value::TensorRef;
 
 use crate::control::{self, LatentStats, Mask};
@@ -23,12 +22,10 @@ use crate::lora::merge::merged_weights;
 use crate::lora::{Lora, LoraSpec};
 use crate::noise::gaussian_noise;
 use crate::onnx::OnnxWeights;
-use crate::package::{Manifest, Package};
-use crate::runtime::{
-    ExecutionProvider, SessionConfig, create_session, create_session_with_weights,
-};
+use crate::package::{RefinerManifest, RefinerPackage};
 use crate::sampler::{Sampler, Schedule, Solver};
 use crate::text::TextEncoder;
+use crate::weights_session::create_session_with_weights;
 use crate::{RefinerError, Result};
 
 /// How a [`Pipeline`] is built.
@@ -36,12 +33,8 @@ use crate::{RefinerError, Result};
 pub struct PipelineOptions {
     /// A LoRA merged into the transformer at load.
     pub lora: Option<LoraSpec>,
-    /// Threads ONNX Runtime may use inside one operator; 0 leaves its default (one per core).
-    pub intra_op_threads: usize,
-    /// Where the graphs run.
-    pub execution_provider: ExecutionProvider,
-    /// Keep ONNX Runtime's CPU memory arena (faster repeated runs, memory held at its peak).
-    pub cpu_arena: bool,
+    /// How the graphs' sessions are configured: threads, execution provider, CPU arena.
+    pub session: SessionOptions,
     /// Leave the package's text encoder unloaded (umT5-XXL is ~23 GB): prompts must then come
     /// as precomputed embeddings.
     pub skip_text_encoder: bool,
@@ -110,13 +103,13 @@ pub struct RefineOutput {
     pub latents: Vec<f32>,
 }
 
-/// A loaded package: three sessions and the latent statistics.
+/// A loaded package: three graphs (four with the text encoder) and the latent statistics.
 pub struct Pipeline {
-    package: Package,
+    package: RefinerPackage,
     stats: LatentStats,
-    transformer: Mutex<Session>,
-    vae_encoder: Mutex<Session>,
-    vae_decoder: Mutex<Session>,
+    transformer: Graph,
+    vae_encoder: Graph,
+    vae_decoder: Graph,
     text_encoder: Option<TextEncoder>,
     merged_weights: usize,
 }
@@ -135,14 +128,10 @@ impl Pipeline {
     ///
     /// Fails naming the key when a LoRA tensor cannot be placed on the transformer.
     pub fn load(dir: impl AsRef<Path>, options: &PipelineOptions) -> Result<Self> {
-        let package = Package::open(dir)?;
+        let package = RefinerPackage::open(dir)?;
         let m = package.manifest();
         let stats = LatentStats::new(m.latent.mean.clone(), &m.latent.std)?;
-        let config = SessionConfig {
-            intra_op_threads: options.intra_op_threads,
-            execution_provider: options.execution_provider,
-            cpu_arena: options.cpu_arena,
-        };
+        let session = &options.session;
         let transformer_path = package.transformer_path();
         let (transformer, merged) = match &options.lora {
             Some(spec) => {
@@ -150,42 +139,42 @@ impl Pipeline {
                 let weights = OnnxWeights::open(&transformer_path)?;
                 let merged = merged_weights(&lora, &weights, spec.scale)?;
                 let count = merged.len();
-                let session =
-                    create_session_with_weights(&transformer_path, config, &weights, merged)?;
-                (session, count)
+                let transformer =
+                    create_session_with_weights(&transformer_path, session, &weights, merged)?;
+                (transformer, count)
             }
-            None => (create_session(&transformer_path, config)?, 0),
+            None => (create_session(&transformer_path, session)?, 0),
         };
-        let vae_encoder = create_session(&package.vae_encoder_path(), config)?;
-        let vae_decoder = create_session(&package.vae_decoder_path(), config)?;
+        let vae_encoder = create_session(&package.vae_encoder_path(), session)?;
+        let vae_decoder = create_session(&package.vae_decoder_path(), session)?;
         let text_encoder = match package.text_encoder_paths() {
             Some((tokenizer, graph)) if !options.skip_text_encoder => Some(TextEncoder::load(
                 &tokenizer,
                 &graph,
                 m.text.tokens,
                 m.text.dim,
-                config,
+                session,
             )?),
             _ => None,
         };
         Ok(Self {
             package,
             stats,
-            transformer: Mutex::new(transformer),
-            vae_encoder: Mutex::new(vae_encoder),
-            vae_decoder: Mutex::new(vae_decoder),
+            transformer: Graph::new("transformer", transformer),
+            vae_encoder: Graph::new("VAE encoder", vae_encoder),
+            vae_decoder: Graph::new("VAE decoder", vae_decoder),
             text_encoder,
             merged_weights: merged,
         })
     }
 
     /// The package.
-    pub fn package(&self) -> &Package {
+    pub fn package(&self) -> &RefinerPackage {
         &self.package
     }
 
     /// The package's manifest.
-    pub fn manifest(&self) -> &Manifest {
+    pub fn manifest(&self) -> &RefinerManifest {
         self.package.manifest()
     }
 
@@ -299,11 +288,12 @@ impl Pipeline {
         let shape = [1, 3, m.frames, m.height, m.width];
         check_len("video", video.len(), &shape)?;
         let input = tensor("video", &shape, video)?;
-        let mut session = lock(&self.vae_encoder);
-        let outputs = session
-            .run(ort::inputs!["video" => input])
-            .map_err(RefinerError::ort("running the VAE encoder"))?;
-        Ok(output(&outputs, "VAE encoder", "latents", &self.latent_shape())?.to_vec())
+        let latent_shape = self.latent_shape();
+        Ok(self
+            .vae_encoder
+            .run(ort::inputs!["video" => input], |outputs| {
+                Ok(outputs.f32("latents", &latent_shape)?.to_vec())
+            })?)
     }
 
     /// One transformer run: the velocity at `latents` (normalised, `[16, F', h, w]`) and
@@ -335,11 +325,9 @@ impl Pipeline {
             "control" => tensor("control", &control_shape, control)?,
             "control_scale" => tensor("control_scale", &scale_shape, control_scales)?,
         ];
-        let mut session = lock(&self.transformer);
-        let outputs = session
-            .run(inputs)
-            .map_err(RefinerError::ort("running the transformer"))?;
-        Ok(output(&outputs, "transformer", "velocity", &latent_shape)?.to_vec())
+        Ok(self.transformer.run(inputs, |outputs| {
+            Ok(outputs.f32("velocity", &latent_shape)?.to_vec())
+        })?)
     }
 
     /// Un-normalises `latents` (`[16, F', h, w]`), VAE-decodes them and returns `F` frames
@@ -359,12 +347,12 @@ impl Pipeline {
         let latent_shape = self.latent_shape();
         check_len("latents", latents.len(), &latent_shape)?;
         let input = tensor("latents", &latent_shape, latents)?;
-        let mut session = lock(&self.vae_decoder);
-        let outputs = session
-            .run(ort::inputs!["latents" => input])
-            .map_err(RefinerError::ort("running the VAE decoder"))?;
         let shape = [1, 3, m.frames, m.height, m.width];
-        Ok(output(&outputs, "VAE decoder", "video", &shape)?.to_vec())
+        Ok(self
+            .vae_decoder
+            .run(ort::inputs!["latents" => input], |outputs| {
+                Ok(outputs.f32("video", &shape)?.to_vec())
+            })?)
     }
 
     fn latent_shape(&self) -> [usize; 5] {
@@ -483,40 +471,8 @@ fn check_len(what: &str, len: usize, shape: &[usize]) -> Result<()> {
 }
 
 fn tensor<'a>(what: &str, shape: &[usize], data: &'a [f32]) -> Result<TensorRef<'a, f32>> {
-    TensorRef::from_array_view((shape.to_vec(), data))
-        .map_err(RefinerError::ort(format!("preparing the {what} tensor")))
-}
-
-pub(crate) fn lock(session: &Mutex<Session>) -> MutexGuard<'_, Session> {
-    // A panic while a run held the lock leaves the session itself intact.
-    session.lock().unwrap_or_else(PoisonError::into_inner)
-}
-
-/// The named f32 output of a run, checked against its expected shape.
-pub(crate) fn output<'o>(
-    outputs: &'o SessionOutputs<'_>,
-    graph: &str,
-    name: &str,
-    expected: &[usize],
-) -> Result<&'o [f32]> {
-    let value = outputs
-        .get(name)
-        .ok_or_else(|| RefinerError::ModelOutput(format!("the {graph} returned no {name:?}")))?;
-    let (shape, data) = value
-        .try_extract_tensor::<f32>()
-        .map_err(RefinerError::ort(format!("reading the {graph}'s {name:?}")))?;
-    let matches = shape.len() == expected.len()
-        && shape
-            .iter()
-            .zip(expected)
-            .all(|(&d, &e)| usize::try_from(d) == Ok(e));
-    if !matches {
-        return Err(RefinerError::ModelOutput(format!(
-            "the {graph}'s {name:?} has shape {:?}, expected {expected:?}",
-            &**shape
-        )));
-    }
-    Ok(data)
+    Ok(TensorRef::from_array_view((shape.to_vec(), data))
+        .map_err(RuntimeError::ort(format!("preparing the {what} tensor")))?)
 }
 
 #[cfg(test)]

@@ -9,15 +9,13 @@
 //! pipeline's own `encode_prompt`; `tests/text_reference.rs` holds this module to them.
 
 use std::path::Path;
-use std::sync::{Mutex, OnceLock};
+use std::sync::OnceLock;
 
-use ort::session::Session;
+use c4g_runtime::{Graph, RuntimeError, SessionOptions, create_session};
 use ort::value::TensorRef;
 use tokenizers::{Tokenizer, TruncationParams};
 use unicode_normalization::UnicodeNormalization;
 
-use crate::pipeline::{lock, output};
-use crate::runtime::{SessionConfig, create_session};
 use crate::{RefinerError, Result};
 
 /// The graph's inputs and output (see `models/python/c4g/wan/text.py`).
@@ -42,7 +40,7 @@ pub struct Tokens {
 pub struct TextEncoder {
     tokenizer: Tokenizer,
     pad_id: i64,
-    session: Mutex<Session>,
+    graph: Graph,
     /// The empty prompt's embedding, once computed: every job without a negative prompt needs it.
     empty: OnceLock<Vec<f32>>,
     tokens: usize,
@@ -66,7 +64,7 @@ impl TextEncoder {
         graph: &Path,
         tokens: usize,
         dim: usize,
-        config: SessionConfig,
+        options: &SessionOptions,
     ) -> Result<Self> {
         let invalid = |reason: String| RefinerError::InvalidPackage {
             dir: tokenizer.parent().unwrap_or(tokenizer).to_path_buf(),
@@ -86,7 +84,7 @@ impl TextEncoder {
         Ok(Self {
             tokenizer: tokenizer_model,
             pad_id: i64::from(pad_id),
-            session: Mutex::new(create_session(graph, config)?),
+            graph: Graph::new("text encoder", create_session(graph, options)?),
             empty: OnceLock::new(),
             tokens,
             dim,
@@ -126,20 +124,14 @@ impl TextEncoder {
         let tokens = self.tokenize(caption)?;
         let shape = vec![1, self.tokens];
         let ids = TensorRef::from_array_view((shape.clone(), &tokens.ids[..]))
-            .map_err(RefinerError::ort("preparing the token ids"))?;
+            .map_err(RuntimeError::ort("preparing the token ids"))?;
         let mask = TensorRef::from_array_view((shape, &tokens.mask[..]))
-            .map_err(RefinerError::ort("preparing the attention mask"))?;
-        let mut session = lock(&self.session);
-        let outputs = session
-            .run(ort::inputs![INPUT_IDS => ids, ATTENTION_MASK => mask])
-            .map_err(RefinerError::ort("running the text encoder"))?;
-        let hidden = output(
-            &outputs,
-            "text encoder",
-            HIDDEN_STATE,
-            &[1, self.tokens, self.dim],
+            .map_err(RuntimeError::ort("preparing the attention mask"))?;
+        let expected = [1, self.tokens, self.dim];
+        let mut embedding = self.graph.run(
+            ort::inputs![INPUT_IDS => ids, ATTENTION_MASK => mask],
+            |outputs| Ok(outputs.f32(HIDDEN_STATE, &expected)?.to_vec()),
         )?;
-        let mut embedding = hidden.to_vec();
         embedding[tokens.len * self.dim..].fill(0.0);
         Ok(embedding)
     }

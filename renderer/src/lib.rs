@@ -9,7 +9,7 @@
 mod camera;
 /// The crate's one error type.
 mod error;
-/// Files: 3DGS `.ply`, antimatter15 `.splat`, and time series of sets.
+/// Files and payloads: 3DGS `.ply`, antimatter15 `.splat`, time series of sets, `C4GS` frames.
 pub mod formats;
 /// Gaussian sets: the canonical layout, columns, optional feature vectors.
 mod gaussians;

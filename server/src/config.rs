@@ -70,12 +70,20 @@ pub struct Config {
     /// Encodes (intake + encoder) at once; more are refused at once with 429 and Retry-After.
     #[arg(long, env = "C4G_MAX_CONCURRENT_ENCODES", default_value_t = 2)]
     pub max_concurrent_encodes: usize,
-    /// Decode and render jobs running at once (0: one per core).
-    #[arg(long, env = "C4G_MAX_CONCURRENT_JOBS", default_value_t = 0)]
-    pub max_concurrent_jobs: usize,
-    /// Decode and render jobs that may wait for a slot; more are refused with 503 and Retry-After.
-    #[arg(long, env = "C4G_MAX_QUEUED_JOBS", default_value_t = 256)]
-    pub max_queued_jobs: usize,
+    /// Decodes and renders running at once, each on a work slot (0: one per core).
+    #[arg(long, env = "C4G_MAX_CONCURRENT_WORK")]
+    pub max_concurrent_work: Option<usize>,
+    /// Decodes and renders that may wait for a work slot; more are refused with 503 and
+    /// Retry-After. Default 256.
+    #[arg(long, env = "C4G_MAX_QUEUED_WORK")]
+    pub max_queued_work: Option<usize>,
+    /// The old name of `--max-concurrent-work` (work slots were once called jobs, a name that
+    /// now means refinement jobs only); used when the new one is not set.
+    #[arg(long, env = "C4G_MAX_CONCURRENT_JOBS", hide = true)]
+    pub max_concurrent_jobs: Option<usize>,
+    /// The old name of `--max-queued-work`; used when the new one is not set.
+    #[arg(long, env = "C4G_MAX_QUEUED_JOBS", hide = true)]
+    pub max_queued_jobs: Option<usize>,
     /// Time limit for reading media with FFmpeg and for one encode, in seconds.
     #[arg(long, env = "C4G_INTAKE_TIMEOUT_S", default_value_t = 120)]
     pub intake_timeout_s: u64,
@@ -103,6 +111,9 @@ pub struct Config {
     #[arg(long, env = "C4G_FFMPEG", default_value = "ffmpeg")]
     pub ffmpeg: PathBuf,
 }
+
+/// Decodes and renders that may wait for a work slot when no setting says.
+pub const DEFAULT_MAX_QUEUED_WORK: usize = 256;
 
 /// Which rasterizer renders.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -189,15 +200,32 @@ impl Config {
         }
     }
 
+    /// Work slots for decodes and renders (0: one per core), by the new name or the old.
+    pub fn max_concurrent_work(&self) -> usize {
+        self.max_concurrent_work
+            .or(self.max_concurrent_jobs)
+            .unwrap_or(0)
+    }
+
+    /// Decodes and renders that may wait for a slot, by the new name or the old.
+    pub fn max_queued_work(&self) -> usize {
+        self.max_queued_work
+            .or(self.max_queued_jobs)
+            .unwrap_or(DEFAULT_MAX_QUEUED_WORK)
+    }
+
     /// The engine options these settings ask for.
     pub fn engine_options(&self) -> EngineOptions {
         EngineOptions {
-            intra_op_threads: self.intra_op_threads,
-            execution_provider: match self.device {
-                DeviceArg::Cpu => ExecutionProvider::Cpu,
-                DeviceArg::Cuda => ExecutionProvider::Cuda {
-                    device_id: self.cuda_device,
+            session: c4g_engine::SessionOptions {
+                intra_op_threads: self.intra_op_threads,
+                execution_provider: match self.device {
+                    DeviceArg::Cpu => ExecutionProvider::Cpu,
+                    DeviceArg::Cuda => ExecutionProvider::Cuda {
+                        device_id: self.cuda_device,
+                    },
                 },
+                ..c4g_engine::SessionOptions::default()
             },
             time_policy: match self.time_policy {
                 PolicyArg::Stable => TimePolicy::Stable,
@@ -205,5 +233,42 @@ impl Config {
             },
             ..EngineOptions::default()
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(args: &[&str]) -> Config {
+        Config::try_parse_from(std::iter::once("c4g-server").chain(args.iter().copied())).unwrap()
+    }
+
+    #[test]
+    fn work_slots_default_to_one_per_core_and_a_queue_of_256() {
+        // Only the flags are under test here: the environment of the test process is not.
+        let config = parse(&[]);
+        if std::env::vars().any(|(k, _)| k.starts_with("C4G_MAX_")) {
+            return;
+        }
+        assert_eq!(config.max_concurrent_work(), 0);
+        assert_eq!(config.max_queued_work(), DEFAULT_MAX_QUEUED_WORK);
+    }
+
+    #[test]
+    fn the_old_job_names_still_set_the_work_slots_and_the_new_names_win() {
+        let old = parse(&["--max-concurrent-jobs", "3", "--max-queued-jobs", "7"]);
+        assert_eq!((old.max_concurrent_work(), old.max_queued_work()), (3, 7));
+        let both = parse(&[
+            "--max-concurrent-jobs",
+            "3",
+            "--max-concurrent-work",
+            "5",
+            "--max-queued-jobs",
+            "7",
+            "--max-queued-work",
+            "9",
+        ]);
+        assert_eq!((both.max_concurrent_work(), both.max_queued_work()), (5, 9));
     }
 }

@@ -1,130 +1,65 @@
-//! Errors as the API shows them: over HTTP a status and a JSON body `{"error": ..., "kind": ...}`
-//! whose `kind` a client can switch on; over gRPC a status code and the same message. Engine and
-//! renderer errors map to statuses here and nowhere else.
-
-use std::time::Duration;
+//! The one place where errors become statuses: a [`ServiceError`]'s kind is an HTTP status with a
+//! JSON body `{"error": ..., "kind": ...}`, and a gRPC code with the message and a
+//! `c4g-error-kind` metadata entry holding the same kind. Both matches are exhaustive, so a new
+//! kind does not compile until each transport has a status for it.
 
 use axum::Json;
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use c4g_engine::{EngineError, ErrorKind};
-use c4g_renderer::RendererError;
 use serde_json::json;
+use tonic::Code;
 
-/// An error answered to a client. Messages say what happened and what to do about it.
-#[derive(Debug, thiserror::Error)]
-pub enum ApiError {
-    /// The model is still loading.
-    #[error("the model is still loading; retry shortly")]
-    NotReady,
-    /// The request is malformed or asks for something impossible.
-    #[error("{0}")]
-    InvalidInput(String),
-    /// Missing or wrong API key.
-    #[error("missing or wrong API key: send `Authorization: Bearer <key>`")]
-    Unauthorized,
-    /// Something the request names does not exist.
-    #[error("{0}")]
-    NotFound(String),
-    /// Over a configured limit.
-    #[error("{0}")]
-    TooLarge(String),
-    /// Media of a kind the service does not read.
-    #[error("{0}")]
-    UnsupportedMedia(String),
-    /// Media of a known kind that cannot be read (truncated, corrupt, unusable frames).
-    #[error("{0}")]
-    UnreadableMedia(String),
-    /// Every encode slot is taken.
-    #[error("every encode slot is busy; retry in {}s", retry_after.as_secs())]
-    Busy {
-        /// When to try again.
-        retry_after: Duration,
-    },
-    /// The job queue is full.
-    #[error("the server is overloaded; retry in {}s", retry_after.as_secs())]
-    Overloaded {
-        /// When to try again.
-        retry_after: Duration,
-    },
-    /// The server failed; the message is logged and shown.
-    #[error("internal error: {0}")]
-    Internal(String),
-    /// An engine error, mapped by its kind.
-    #[error(transparent)]
-    Engine(#[from] EngineError),
-    /// A renderer error, mapped by its kind.
-    #[error(transparent)]
-    Renderer(#[from] RendererError),
-}
+use crate::service_error::{ServiceError, ServiceErrorKind};
 
-impl ApiError {
-    /// Shorthand for [`ApiError::InvalidInput`].
-    pub fn invalid(message: impl Into<String>) -> Self {
-        Self::InvalidInput(message.into())
-    }
+/// The gRPC metadata entry that carries the error kind.
+pub const GRPC_KIND_KEY: &str = "c4g-error-kind";
 
-    /// The HTTP status and the machine-readable kind.
-    pub fn status_and_kind(&self) -> (StatusCode, &'static str) {
-        match self {
-            ApiError::NotReady => (StatusCode::SERVICE_UNAVAILABLE, "not_ready"),
-            ApiError::InvalidInput(_) => (StatusCode::BAD_REQUEST, "invalid_input"),
-            ApiError::Unauthorized => (StatusCode::UNAUTHORIZED, "unauthorized"),
-            ApiError::NotFound(_) => (StatusCode::NOT_FOUND, "not_found"),
-            ApiError::TooLarge(_) => (StatusCode::PAYLOAD_TOO_LARGE, "too_large"),
-            ApiError::UnsupportedMedia(_) => {
-                (StatusCode::UNSUPPORTED_MEDIA_TYPE, "unsupported_media")
-            }
-            ApiError::UnreadableMedia(_) => (StatusCode::UNPROCESSABLE_ENTITY, "unreadable_media"),
-            ApiError::Busy { .. } => (StatusCode::TOO_MANY_REQUESTS, "busy"),
-            ApiError::Overloaded { .. } => (StatusCode::SERVICE_UNAVAILABLE, "overloaded"),
-            ApiError::Internal(_) => (StatusCode::INTERNAL_SERVER_ERROR, "internal"),
-            ApiError::Engine(e) => match e.kind() {
-                ErrorKind::InvalidInput => (StatusCode::BAD_REQUEST, "invalid_input"),
-                ErrorKind::Unsupported => (StatusCode::UNPROCESSABLE_ENTITY, "unsupported"),
-                ErrorKind::Package | ErrorKind::Runtime | ErrorKind::ModelOutput => {
-                    (StatusCode::INTERNAL_SERVER_ERROR, "internal")
-                }
-            },
-            ApiError::Renderer(e) => match e {
-                RendererError::ThreadPool(_)
-                | RendererError::Io { .. }
-                | RendererError::GpuUnavailable(_)
-                | RendererError::Gpu(_)
-                | RendererError::InvalidGaussian { .. } => {
-                    (StatusCode::INTERNAL_SERVER_ERROR, "internal")
-                }
-                _ => (StatusCode::BAD_REQUEST, "invalid_input"),
-            },
-        }
-    }
-
-    fn retry_after(&self) -> Option<Duration> {
-        match self {
-            ApiError::Busy { retry_after } | ApiError::Overloaded { retry_after } => {
-                Some(*retry_after)
-            }
-            ApiError::NotReady => Some(Duration::from_secs(1)),
-            _ => None,
-        }
-    }
-
-    fn log(&self, status: StatusCode) {
-        if status.is_server_error()
-            && !matches!(self, ApiError::NotReady | ApiError::Overloaded { .. })
-        {
-            tracing::error!(error = %self, "request failed");
-        }
+/// The HTTP status of each kind.
+pub fn http_status(kind: ServiceErrorKind) -> StatusCode {
+    use ServiceErrorKind as K;
+    match kind {
+        K::NotReady | K::Overloaded => StatusCode::SERVICE_UNAVAILABLE,
+        K::InvalidInput => StatusCode::BAD_REQUEST,
+        K::Unauthorized => StatusCode::UNAUTHORIZED,
+        K::NotFound => StatusCode::NOT_FOUND,
+        K::TooLarge => StatusCode::PAYLOAD_TOO_LARGE,
+        K::UnsupportedMedia => StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        K::UnreadableMedia | K::Unsupported => StatusCode::UNPROCESSABLE_ENTITY,
+        K::Busy => StatusCode::TOO_MANY_REQUESTS,
+        K::Internal => StatusCode::INTERNAL_SERVER_ERROR,
     }
 }
 
-impl IntoResponse for ApiError {
+/// The gRPC code of each kind.
+pub fn grpc_code(kind: ServiceErrorKind) -> Code {
+    use ServiceErrorKind as K;
+    match kind {
+        K::NotReady | K::Overloaded => Code::Unavailable,
+        K::InvalidInput | K::UnsupportedMedia | K::UnreadableMedia | K::Unsupported => {
+            Code::InvalidArgument
+        }
+        K::Unauthorized => Code::Unauthenticated,
+        K::NotFound => Code::NotFound,
+        K::TooLarge | K::Busy => Code::ResourceExhausted,
+        K::Internal => Code::Internal,
+    }
+}
+
+/// Server failures are logged where they are answered; refusals for load are expected and are
+/// counted by the metrics instead.
+fn log(error: &ServiceError, kind: ServiceErrorKind) {
+    if kind == ServiceErrorKind::Internal {
+        tracing::error!(error = %error, "request failed");
+    }
+}
+
+impl IntoResponse for ServiceError {
     fn into_response(self) -> Response {
-        let (status, kind) = self.status_and_kind();
-        self.log(status);
+        let kind = self.kind();
+        log(&self, kind);
         let mut response = (
-            status,
-            Json(json!({ "error": self.to_string(), "kind": kind })),
+            http_status(kind),
+            Json(json!({ "error": self.to_string(), "kind": kind.name() })),
         )
             .into_response();
         if let Some(after) = self.retry_after() {
@@ -137,31 +72,178 @@ impl IntoResponse for ApiError {
     }
 }
 
-impl From<ApiError> for tonic::Status {
-    fn from(error: ApiError) -> Self {
-        use tonic::Code;
-        let (status, kind) = error.status_and_kind();
-        error.log(status);
-        let code = match status {
-            StatusCode::BAD_REQUEST | StatusCode::UNPROCESSABLE_ENTITY => Code::InvalidArgument,
-            StatusCode::UNSUPPORTED_MEDIA_TYPE => Code::InvalidArgument,
-            StatusCode::UNAUTHORIZED => Code::Unauthenticated,
-            StatusCode::NOT_FOUND => Code::NotFound,
-            StatusCode::PAYLOAD_TOO_LARGE | StatusCode::TOO_MANY_REQUESTS => {
-                Code::ResourceExhausted
-            }
-            StatusCode::SERVICE_UNAVAILABLE => Code::Unavailable,
-            _ => Code::Internal,
-        };
-        let mut status = tonic::Status::new(code, error.to_string());
-        if let Ok(kind) = kind.parse() {
-            status.metadata_mut().insert("c4g-error-kind", kind);
-        }
+impl From<ServiceError> for tonic::Status {
+    fn from(error: ServiceError) -> Self {
+        let kind = error.kind();
+        log(&error, kind);
+        let mut status = tonic::Status::new(grpc_code(kind), error.to_string());
+        status.metadata_mut().insert(
+            GRPC_KIND_KEY,
+            tonic::metadata::MetadataValue::from_static(kind.name()),
+        );
         if let Some(after) = error.retry_after()
             && let Ok(value) = after.as_secs().max(1).to_string().parse()
         {
             status.metadata_mut().insert("retry-after", value);
         }
         status
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::HashSet;
+    use std::time::Duration;
+
+    use super::*;
+
+    /// Every kind, its name, HTTP status and gRPC code: the contract `docs/api.md` documents.
+    const TABLE: [(ServiceErrorKind, &str, u16, Code); 11] = [
+        (
+            ServiceErrorKind::NotReady,
+            "not_ready",
+            503,
+            Code::Unavailable,
+        ),
+        (
+            ServiceErrorKind::InvalidInput,
+            "invalid_input",
+            400,
+            Code::InvalidArgument,
+        ),
+        (
+            ServiceErrorKind::Unauthorized,
+            "unauthorized",
+            401,
+            Code::Unauthenticated,
+        ),
+        (ServiceErrorKind::NotFound, "not_found", 404, Code::NotFound),
+        (
+            ServiceErrorKind::TooLarge,
+            "too_large",
+            413,
+            Code::ResourceExhausted,
+        ),
+        (
+            ServiceErrorKind::UnsupportedMedia,
+            "unsupported_media",
+            415,
+            Code::InvalidArgument,
+        ),
+        (
+            ServiceErrorKind::UnreadableMedia,
+            "unreadable_media",
+            422,
+            Code::InvalidArgument,
+        ),
+        (
+            ServiceErrorKind::Unsupported,
+            "unsupported",
+            422,
+            Code::InvalidArgument,
+        ),
+        (ServiceErrorKind::Busy, "busy", 429, Code::ResourceExhausted),
+        (
+            ServiceErrorKind::Overloaded,
+            "overloaded",
+            503,
+            Code::Unavailable,
+        ),
+        (ServiceErrorKind::Internal, "internal", 500, Code::Internal),
+    ];
+
+    #[test]
+    fn every_kind_has_its_documented_name_http_status_and_grpc_code() {
+        let listed: HashSet<_> = TABLE.iter().map(|row| row.0).collect();
+        let all: HashSet<_> = ServiceErrorKind::ALL.into_iter().collect();
+        assert_eq!(listed, all, "the table and ServiceErrorKind::ALL disagree");
+        assert_eq!(all.len(), ServiceErrorKind::ALL.len(), "ALL repeats a kind");
+        for (kind, name, http, code) in TABLE {
+            assert_eq!(kind.name(), name);
+            assert_eq!(http_status(kind).as_u16(), http, "{name}");
+            assert_eq!(grpc_code(kind), code, "{name}");
+        }
+    }
+
+    #[test]
+    fn all_lists_every_variant() {
+        // Adding a kind breaks this match until it is given a place in ALL (and so in TABLE).
+        for kind in ServiceErrorKind::ALL {
+            let position = match kind {
+                ServiceErrorKind::NotReady => 0,
+                ServiceErrorKind::InvalidInput => 1,
+                ServiceErrorKind::Unauthorized => 2,
+                ServiceErrorKind::NotFound => 3,
+                ServiceErrorKind::TooLarge => 4,
+                ServiceErrorKind::UnsupportedMedia => 5,
+                ServiceErrorKind::UnreadableMedia => 6,
+                ServiceErrorKind::Unsupported => 7,
+                ServiceErrorKind::Busy => 8,
+                ServiceErrorKind::Overloaded => 9,
+                ServiceErrorKind::Internal => 10,
+            };
+            assert_eq!(ServiceErrorKind::ALL[position], kind);
+        }
+    }
+
+    #[test]
+    fn grpc_refusals_carry_the_kind_and_the_retry_hint() {
+        let status = tonic::Status::from(ServiceError::Overloaded {
+            retry_after: Duration::from_secs(3),
+        });
+        assert_eq!(status.code(), Code::Unavailable);
+        let metadata = status.metadata();
+        assert_eq!(metadata.get(GRPC_KIND_KEY).unwrap(), "overloaded");
+        assert_eq!(metadata.get("retry-after").unwrap(), "3");
+        let status = tonic::Status::from(ServiceError::invalid("bad times"));
+        assert_eq!(status.code(), Code::InvalidArgument);
+        assert_eq!(status.message(), "bad times");
+        assert_eq!(
+            status.metadata().get(GRPC_KIND_KEY).unwrap(),
+            "invalid_input"
+        );
+    }
+
+    #[test]
+    fn rest_errors_answer_json_with_the_kind() {
+        let response = ServiceError::NotFound("no clip \"x\"".into()).into_response();
+        assert_eq!(response.status(), StatusCode::NOT_FOUND);
+        assert!(response.headers().get(header::RETRY_AFTER).is_none());
+        let response = ServiceError::NotReady.into_response();
+        assert_eq!(response.status(), StatusCode::SERVICE_UNAVAILABLE);
+        assert_eq!(response.headers().get(header::RETRY_AFTER).unwrap(), "1");
+    }
+
+    #[test]
+    fn engine_and_renderer_errors_are_classified_by_who_can_fix_them() {
+        use c4g_engine::EngineError;
+        use c4g_renderer::RendererError;
+        let cases = [
+            (
+                ServiceError::from(EngineError::InvalidInput("x".into())),
+                ServiceErrorKind::InvalidInput,
+            ),
+            (
+                ServiceError::from(EngineError::NoFeatureDecoder {
+                    package: "p".into(),
+                }),
+                ServiceErrorKind::Unsupported,
+            ),
+            (
+                ServiceError::from(EngineError::ModelOutput("x".into())),
+                ServiceErrorKind::Internal,
+            ),
+            (
+                ServiceError::from(RendererError::InvalidCamera("x".into())),
+                ServiceErrorKind::InvalidInput,
+            ),
+            (
+                ServiceError::from(RendererError::Gpu("lost".into())),
+                ServiceErrorKind::Internal,
+            ),
+        ];
+        for (error, kind) in cases {
+            assert_eq!(error.kind(), kind, "{error}");
+        }
     }
 }

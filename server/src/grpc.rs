@@ -14,12 +14,13 @@ use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
+use crate::camera::{CameraSpec, IntrinsicsSpec};
+use crate::image_formats::{ImageFormat, encode_image};
 use crate::intake::{IntakeOptions, Media, MediaKind};
-use crate::render::{CameraSpec, ImageFormat, IntrinsicsSpec, encode_image};
 use crate::service::{PathRequest, Service, ViewRequest};
 use crate::store::ClipRecord;
 use crate::wire::{self, Precision};
-use crate::{ApiError, AppState};
+use crate::{AppState, ServiceError};
 
 /// Sets a stream decodes ahead of what the client has taken: the backpressure bound.
 const STREAM_AHEAD: usize = 4;
@@ -105,23 +106,23 @@ fn camera_spec(camera: Option<pb::Camera>) -> CameraSpec {
     }
 }
 
-fn background(values: &[f32]) -> Result<[f32; 3], Status> {
+fn background(values: &[f32]) -> Result<[f32; 3], ServiceError> {
     match values {
         [] => Ok([0.0; 3]),
         [r, g, b] => Ok([*r, *g, *b]),
-        other => Err(Status::invalid_argument(format!(
+        other => Err(ServiceError::invalid(format!(
             "background needs 3 values (RGB), got {}",
             other.len()
         ))),
     }
 }
 
-fn image_format(format: i32) -> Result<ImageFormat, Status> {
+fn image_format(format: i32) -> Result<ImageFormat, ServiceError> {
     match pb::ImageFormat::try_from(format) {
         Ok(pb::ImageFormat::Unspecified | pb::ImageFormat::Png) => Ok(ImageFormat::Png),
         Ok(pb::ImageFormat::DepthF32) => Ok(ImageFormat::Depth),
         Ok(pb::ImageFormat::AlphaF32) => Ok(ImageFormat::Alpha),
-        Err(_) => Err(Status::invalid_argument(format!(
+        Err(_) => Err(ServiceError::invalid(format!(
             "unknown image format {format}"
         ))),
     }
@@ -146,9 +147,10 @@ impl C4g for Grpc {
                 part: Some(pb::upload_request::Part::Header(header)),
             }) => header,
             _ => {
-                return Err(Status::invalid_argument(
+                return Err(ServiceError::invalid(
                     "the first message of an upload must be its header",
-                ));
+                )
+                .into());
             }
         };
         let limit = service.limits.max_body_bytes;
@@ -157,7 +159,7 @@ impl C4g for Grpc {
             match message.part {
                 Some(pb::upload_request::Part::Chunk(chunk)) => {
                     if data.len() + chunk.len() > limit {
-                        return Err(ApiError::TooLarge(format!(
+                        return Err(ServiceError::TooLarge(format!(
                             "the upload is over {limit} bytes (C4G_MAX_BODY_MIB)"
                         ))
                         .into());
@@ -165,9 +167,10 @@ impl C4g for Grpc {
                     data.extend_from_slice(&chunk);
                 }
                 _ => {
-                    return Err(Status::invalid_argument(
+                    return Err(ServiceError::invalid(
                         "after the header an upload sends only chunks",
-                    ));
+                    )
+                    .into());
                 }
             }
         }
@@ -224,7 +227,7 @@ impl C4g for Grpc {
         request: Request<pb::DecodeRequest>,
     ) -> Result<Response<pb::DecodeResponse>, Status> {
         let request = request.into_inner();
-        let precision = Precision::from(request.precision());
+        let precision: Precision = wire::precision_from_proto(request.precision());
         let frames = self
             .service()?
             .decode(&request.clip_id, request.times)
@@ -258,19 +261,18 @@ impl C4g for Grpc {
             None => 0.1,
         };
         if !(step.is_finite() && step > 0.0) {
-            return Err(Status::invalid_argument(format!(
+            return Err(ServiceError::invalid(format!(
                 "the step between sets must be a positive number of seconds, got {step}"
-            )));
+            ))
+            .into());
         }
         service.check_times(&record, &[start, end])?;
         if start > end {
-            return Err(Status::invalid_argument(format!(
-                "start {start} is after end {end}"
-            )));
+            return Err(ServiceError::invalid(format!("start {start} is after end {end}")).into());
         }
         let count = ((end - start) / step + 1e-9).floor() as usize + 1;
         if count > service.limits.max_times {
-            return Err(ApiError::TooLarge(format!(
+            return Err(ServiceError::TooLarge(format!(
                 "{count} sets in one stream; at most {} (C4G_MAX_TIMES): use a larger step",
                 service.limits.max_times
             ))
@@ -280,7 +282,7 @@ impl C4g for Grpc {
             .map(|i| (start + step * i as f64).min(end))
             .collect();
         let encoding = service.store.encoding(&record.id).await?;
-        let precision = Precision::from(request.precision());
+        let precision: Precision = wire::precision_from_proto(request.precision());
         let (tx, rx) = mpsc::channel(STREAM_AHEAD);
         tokio::spawn(async move {
             // Decode in the engine's batch size; a send waits while the client is behind.
@@ -292,7 +294,7 @@ impl C4g for Grpc {
                 let chunk = chunk.to_vec();
                 let encoding = encoding.clone();
                 let frames = service
-                    .job(move |service| service.decode_now(&encoding, &chunk))
+                    .work(move |service| service.decode_now(&encoding, &chunk))
                     .await;
                 match frames {
                     Ok(frames) => {
@@ -351,7 +353,7 @@ impl C4g for Grpc {
         let preset = match request.preset_json.trim() {
             "" => None,
             json => Some(serde_json::from_str::<Trajectory>(json).map_err(|e| {
-                Status::invalid_argument(format!("preset_json is not a trajectory: {e}"))
+                ServiceError::invalid(format!("preset_json is not a trajectory: {e}"))
             })?),
         };
         let path = PathRequest {
@@ -378,10 +380,10 @@ impl C4g for Grpc {
             for (t, camera) in plan {
                 let encoding = encoding.clone();
                 let result = service
-                    .job(move |service| {
+                    .work(move |service| {
                         let image = service.render_path_now(&encoding, &[(t, camera)], bg)?;
                         let image = image.into_iter().next().ok_or_else(|| {
-                            ApiError::Internal("the renderer returned no image".into())
+                            ServiceError::Internal("the renderer returned no image".into())
                         })?;
                         Ok(pb::RenderedImage {
                             time: t,

@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use tokio::sync::{Notify, watch};
 
-use crate::ApiError;
+use crate::ServiceError;
 use crate::store::now;
 
 /// Where a job is in its life.
@@ -117,9 +117,9 @@ struct State {
 impl JobStore {
     /// Opens the job store under `dir`. Jobs that were running when the server stopped go back
     /// to the queue (or fail, when out of attempts).
-    pub fn open(dir: &Path, lease: Duration, max_attempts: u32) -> Result<Self, ApiError> {
+    pub fn open(dir: &Path, lease: Duration, max_attempts: u32) -> Result<Self, ServiceError> {
         std::fs::create_dir_all(dir)
-            .map_err(|e| ApiError::Internal(format!("cannot create {}: {e}", dir.display())))?;
+            .map_err(|e| ServiceError::Internal(format!("cannot create {}: {e}", dir.display())))?;
         let store = Self {
             dir: dir.to_path_buf(),
             lease,
@@ -128,7 +128,7 @@ impl JobStore {
             queued: Notify::new(),
         };
         let mut records: Vec<JobRecord> = std::fs::read_dir(dir)
-            .map_err(|e| ApiError::Internal(format!("cannot read {}: {e}", dir.display())))?
+            .map_err(|e| ServiceError::Internal(format!("cannot read {}: {e}", dir.display())))?
             .flatten()
             .filter_map(|e| {
                 let path = e.path().join("job.json");
@@ -177,7 +177,7 @@ impl JobStore {
         self.state.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    fn write(&self, record: &JobRecord) -> Result<(), ApiError> {
+    fn write(&self, record: &JobRecord) -> Result<(), ServiceError> {
         let dir = self.dir.join(&record.id);
         std::fs::create_dir_all(&dir)
             .and_then(|()| {
@@ -185,15 +185,15 @@ impl JobStore {
                 std::fs::write(&tmp, serde_json::to_vec_pretty(record).unwrap_or_default())?;
                 std::fs::rename(&tmp, dir.join("job.json"))
             })
-            .map_err(|e| ApiError::Internal(format!("cannot store job {}: {e}", record.id)))
+            .map_err(|e| ServiceError::Internal(format!("cannot store job {}: {e}", record.id)))
     }
 
     /// Applies `change` to job `id`, stores and publishes the result.
     fn update(
         &self,
         id: &str,
-        change: impl FnOnce(&mut JobRecord, &mut Option<Instant>) -> Result<(), ApiError>,
-    ) -> Result<JobRecord, ApiError> {
+        change: impl FnOnce(&mut JobRecord, &mut Option<Instant>) -> Result<(), ServiceError>,
+    ) -> Result<JobRecord, ServiceError> {
         let mut state = self.lock();
         let entry = state.jobs.get_mut(id).ok_or_else(|| not_found(id))?;
         let mut record = entry.record.clone();
@@ -234,7 +234,11 @@ impl JobStore {
     }
 
     /// Creates a queued job for `clip_id`.
-    pub fn create(&self, clip_id: &str, request: serde_json::Value) -> Result<JobRecord, ApiError> {
+    pub fn create(
+        &self,
+        clip_id: &str,
+        request: serde_json::Value,
+    ) -> Result<JobRecord, ServiceError> {
         let id = {
             let mut state = self.lock();
             state.counter += 1;
@@ -280,7 +284,7 @@ impl JobStore {
     }
 
     /// One job's record.
-    pub fn get(&self, id: &str) -> Result<JobRecord, ApiError> {
+    pub fn get(&self, id: &str) -> Result<JobRecord, ServiceError> {
         self.lock()
             .jobs
             .get(id)
@@ -301,7 +305,7 @@ impl JobStore {
     }
 
     /// Updates of one job, as they happen.
-    pub fn subscribe(&self, id: &str) -> Result<watch::Receiver<JobRecord>, ApiError> {
+    pub fn subscribe(&self, id: &str) -> Result<watch::Receiver<JobRecord>, ServiceError> {
         self.lock()
             .jobs
             .get(id)
@@ -310,7 +314,11 @@ impl JobStore {
     }
 
     /// The next queued job for `worker`, waiting up to `wait`.
-    pub async fn take(&self, worker: &str, wait: Duration) -> Result<Option<JobRecord>, ApiError> {
+    pub async fn take(
+        &self,
+        worker: &str,
+        wait: Duration,
+    ) -> Result<Option<JobRecord>, ServiceError> {
         let deadline = tokio::time::Instant::now() + wait;
         loop {
             let notified = self.queued.notified();
@@ -346,9 +354,9 @@ impl JobStore {
         }
     }
 
-    fn check_owner(record: &JobRecord, worker: &str) -> Result<(), ApiError> {
+    fn check_owner(record: &JobRecord, worker: &str) -> Result<(), ServiceError> {
         if record.state != JobState::Running || record.worker.as_deref() != Some(worker) {
-            return Err(ApiError::invalid(format!(
+            return Err(ServiceError::invalid(format!(
                 "job {} is not running on worker {worker} (it is {:?}); drop it",
                 record.id, record.state
             )));
@@ -357,7 +365,12 @@ impl JobStore {
     }
 
     /// Records progress (renewing the lease); `true` when the job was cancelled.
-    pub fn progress(&self, id: &str, worker: &str, progress: Progress) -> Result<bool, ApiError> {
+    pub fn progress(
+        &self,
+        id: &str,
+        worker: &str,
+        progress: Progress,
+    ) -> Result<bool, ServiceError> {
         let lease = self.lease;
         let record = self.update(id, |record, lease_until| {
             Self::check_owner(record, worker)?;
@@ -375,7 +388,7 @@ impl JobStore {
         worker: &str,
         frames: &[Vec<u8>],
         seconds: f64,
-    ) -> Result<JobRecord, ApiError> {
+    ) -> Result<JobRecord, ServiceError> {
         Self::check_owner(&self.get(id)?, worker)?;
         let dir = self.result_dir(id);
         let tmp = self.dir.join(id).join(".result.tmp");
@@ -388,7 +401,7 @@ impl JobStore {
                 let _ = std::fs::remove_dir_all(&dir);
                 std::fs::rename(&tmp, &dir)
             })
-            .map_err(|e| ApiError::Internal(format!("cannot store the result of {id}: {e}")))?;
+            .map_err(|e| ServiceError::Internal(format!("cannot store the result of {id}: {e}")))?;
         let record = self.update(id, |record, lease_until| {
             Self::check_owner(record, worker)?;
             record.state = JobState::Done;
@@ -412,7 +425,7 @@ impl JobStore {
         error: &str,
         retryable: bool,
         cancelled: bool,
-    ) -> Result<JobRecord, ApiError> {
+    ) -> Result<JobRecord, ServiceError> {
         self.update(id, |record, lease_until| {
             Self::check_owner(record, worker)?;
             *lease_until = None;
@@ -439,7 +452,7 @@ impl JobStore {
     }
 
     /// Cancels a job: at once when queued, at the worker's next progress report when running.
-    pub fn cancel(&self, id: &str) -> Result<JobRecord, ApiError> {
+    pub fn cancel(&self, id: &str) -> Result<JobRecord, ServiceError> {
         let record = self.update(id, |record, _| {
             match record.state {
                 JobState::Queued => {
@@ -494,8 +507,8 @@ impl JobStore {
     }
 }
 
-fn not_found(id: &str) -> ApiError {
-    ApiError::NotFound(format!("no job {id:?} (GET /v1/jobs lists them)"))
+fn not_found(id: &str) -> ServiceError {
+    ServiceError::NotFound(format!("no job {id:?} (GET /v1/jobs lists them)"))
 }
 
 #[cfg(test)]

@@ -6,36 +6,46 @@
 //! | [`intake`] | untrusted uploads (videos via FFmpeg, image archives) to timed context frames |
 //! | [`store`] | the clip store: content-addressed clips on disk, features in an LRU cache |
 //! | [`service`] | upload, decode, render: what both transports call |
+//! | `work` | work slots: decodes and renders on blocking threads, bounded, behind a bounded queue |
 //! | [`jobs`] | refinement jobs: durable records, the queue, worker leases |
 //! | `refine` | refinement requests, and the video a worker gets |
-//! | `workers` | the gRPC service `c4g.v1.Jobs` that refinement workers pull from |
-//! | `render` | cameras as clients state them, the rasterizer choice, PNG and MP4 encoding |
-//! | `wire` | Gaussian sets as JSON, packed binary and gRPC messages |
+//! | `camera` | cameras as clients state them |
+//! | `renderer` | the rasterizer choice |
+//! | `image_formats` | what renders answer with: PNG, raw depth and alpha, MP4 |
+//! | `service_error` | [`ServiceError`]: what went wrong, in domain words, and its kinds |
+//! | *the edge* | |
 //! | `api` | the REST routes, one file per endpoint group; `/openapi.json` and `/docs` |
 //! | `grpc` | the gRPC service `c4g.v1.C4G`, health and reflection, on the same port |
+//! | `workers` | the gRPC service `c4g.v1.Jobs` that refinement workers pull from |
+//! | `wire` | Gaussian sets as JSON and gRPC messages (the binary `C4GS` codec is the renderer's) |
 //! | `auth` | API-key checks |
 //! | `metrics` | the Prometheus recorder and per-request metrics |
-//! | `error` | the one place where errors become HTTP and gRPC statuses |
+//! | `error` | the one place where a [`ServiceError`] becomes an HTTP status and a gRPC code |
 //!
 //! Handlers translate requests into calls on [`service::Service`]; what a request means lives
-//! there and in [`c4g_engine`].
+//! there and in [`c4g_engine`]. The core (everything above the edge) returns [`ServiceError`] and
+//! imports neither axum nor tonic.
 
 mod api;
 mod auth;
+mod camera;
 pub mod config;
 mod error;
 mod grpc;
+mod image_formats;
 pub mod intake;
 pub mod jobs;
 pub mod metrics;
 mod refine;
-mod render;
+mod renderer;
 pub mod service;
+mod service_error;
 mod state;
 pub mod store;
 mod wire;
+mod work;
 mod workers;
 
 pub use api::router;
-pub use error::ApiError;
+pub use service_error::{ServiceError, ServiceErrorKind};
 pub use state::AppState;

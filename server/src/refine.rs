@@ -10,9 +10,10 @@ use c4g_renderer::Trajectory;
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 
-use crate::ApiError;
+use crate::ServiceError;
+use crate::camera::CameraSpec;
+use crate::image_formats::{ImageFormat, encode_image, le_bytes};
 use crate::jobs::JobRecord;
-use crate::render::{CameraSpec, ImageFormat, encode_image, le_bytes};
 use crate::service::{PathRequest, Service};
 
 /// Samplers a worker runs.
@@ -77,10 +78,10 @@ pub const MAX_PROMPT_CHARS: usize = 10_000;
 
 impl RefineRequest {
     /// Checks everything that can be checked before a worker has the job.
-    pub fn validate(&self, service: &Service, clip_id: &str) -> Result<(), ApiError> {
+    pub fn validate(&self, service: &Service, clip_id: &str) -> Result<(), ServiceError> {
         let steps = self.steps.unwrap_or(30);
         if steps == 0 || steps > MAX_STEPS {
-            return Err(ApiError::invalid(format!(
+            return Err(ServiceError::invalid(format!(
                 "steps must be in 1..={MAX_STEPS}, got {steps}"
             )));
         }
@@ -93,7 +94,7 @@ impl RefineRequest {
             if let Some(v) = value
                 && !(v.is_finite() && v > min)
             {
-                return Err(ApiError::invalid(format!(
+                return Err(ServiceError::invalid(format!(
                     "{name} must be a finite number above {min}, got {v}"
                 )));
             }
@@ -114,26 +115,26 @@ impl RefineRequest {
         ] {
             let Some(text) = text else { continue };
             if has_other {
-                return Err(ApiError::invalid(format!(
+                return Err(ServiceError::invalid(format!(
                     "give {name} or {other}, not both: the embedding would win and the text be ignored"
                 )));
             }
             let chars = text.chars().count();
             if chars > MAX_PROMPT_CHARS {
-                return Err(ApiError::invalid(format!(
+                return Err(ServiceError::invalid(format!(
                     "{name} has {chars} characters; at most {MAX_PROMPT_CHARS} are accepted (the text encoder reads 512 tokens)"
                 )));
             }
         }
         if self.negative_embedding.is_some() && self.text_embedding.is_none() {
-            return Err(ApiError::invalid(
+            return Err(ServiceError::invalid(
                 "negative_embedding needs text_embedding (their token count is text_tokens)",
             ));
         }
         if let Some(e) = &self.text_embedding {
             let tokens = self.text_tokens.unwrap_or(0);
             if tokens == 0 || e.is_empty() || e.len() % tokens != 0 {
-                return Err(ApiError::invalid(format!(
+                return Err(ServiceError::invalid(format!(
                     "text_embedding holds {} numbers: give text_tokens, a divisor of that",
                     e.len()
                 )));
@@ -143,16 +144,16 @@ impl RefineRequest {
                 .as_ref()
                 .is_some_and(|n| n.len() != e.len())
             {
-                return Err(ApiError::invalid(
+                return Err(ServiceError::invalid(
                     "negative_embedding must have the shape of text_embedding",
                 ));
             }
             if e.iter().any(|v| !v.is_finite()) {
-                return Err(ApiError::invalid("text_embedding must be finite"));
+                return Err(ServiceError::invalid("text_embedding must be finite"));
             }
         }
         if self.context_frames == Some(0) {
-            return Err(ApiError::invalid("context_frames must be at least 1"));
+            return Err(ServiceError::invalid("context_frames must be at least 1"));
         }
         // The path, planned at a nominal size: a bad camera or time range fails now, not later.
         let record = service.store.get(clip_id)?;
@@ -201,9 +202,9 @@ pub async fn build_job(
     frames: u32,
     width: u32,
     height: u32,
-) -> Result<pb::RefineJob, ApiError> {
+) -> Result<pb::RefineJob, ServiceError> {
     let request: RefineRequest = serde_json::from_value(record.request.clone()).map_err(|e| {
-        ApiError::Internal(format!(
+        ServiceError::Internal(format!(
             "stored request of {} is unreadable: {e}",
             record.id
         ))
@@ -213,7 +214,7 @@ pub async fn build_job(
     let available = clip.context_times.len();
     let context = request.context_frames.unwrap_or(available).min(available);
     if frames < context + 1 {
-        return Err(ApiError::invalid(format!(
+        return Err(ServiceError::invalid(format!(
             "the worker's model takes {frames} frames: too few for {context} context frames and \
              at least one novel view (ask for fewer context_frames)"
         )));
@@ -240,7 +241,7 @@ pub async fn build_job(
     path.height = Some(height);
     let plan = service.plan_path(&clip, &path)?;
     if plan.len() != frames - context {
-        return Err(ApiError::invalid(format!(
+        return Err(ServiceError::invalid(format!(
             "{} cameras given; the worker's model refines {} novel views here",
             plan.len(),
             frames - context
@@ -249,7 +250,7 @@ pub async fn build_job(
     let encoding = service.store.encoding(&clip.id).await?;
     let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
     let rendered = service
-        .job(move |service| {
+        .work(move |service| {
             service
                 .render_path_now(&encoding, &plan, [0.0; 3])?
                 .iter()

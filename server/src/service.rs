@@ -3,14 +3,12 @@
 //!
 //! Encodes, decodes and renders are CPU work: they run on blocking threads, never on the async
 //! runtime's, so a slow encode cannot stall health checks or streams. Encodes take one of a few
-//! slots and are refused at once when all are busy (429); decode and render jobs wait for one of
-//! `C4G_MAX_CONCURRENT_JOBS` slots in a bounded queue (503 past it), which bounds memory under
-//! load.
+//! slots and are refused at once when all are busy (429); decodes and renders wait for a work
+//! slot (`work`) in a bounded queue (503 past it), which bounds memory under load.
 
 use std::io::Read;
 use std::path::Path;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use c4g_engine::{ContextFrame, Encoding, Engine};
@@ -18,17 +16,17 @@ use c4g_renderer::{Camera, GaussianSet, Image, Trajectory};
 use sha2::{Digest, Sha256};
 use tokio::sync::Semaphore;
 
-use crate::ApiError;
+use crate::ServiceError;
+use crate::camera::CameraSpec;
 use crate::config::{Config, Limits};
 use crate::intake::{self, IntakeOptions, IntakeTools, Media};
 use crate::jobs::JobStore;
-use crate::render::{CameraSpec, Renderer};
+use crate::renderer::Renderer;
 use crate::store::{ClipRecord, ClipStore, NewClip, now};
+use crate::work::WorkSlots;
 
 /// How long a client refused for lack of an encode slot should wait.
 const ENCODE_RETRY_AFTER: Duration = Duration::from_secs(5);
-/// How long a client refused for a full job queue should wait.
-const JOB_RETRY_AFTER: Duration = Duration::from_secs(1);
 
 /// The loaded service: the model, the clip store, the rasterizer and the limits.
 pub struct Service {
@@ -46,9 +44,7 @@ pub struct Service {
     pub jobs: JobStore,
     model_key: String,
     encode_slots: Arc<Semaphore>,
-    job_slots: Arc<Semaphore>,
-    queued_jobs: AtomicUsize,
-    max_queued_jobs: usize,
+    work: WorkSlots,
 }
 
 /// A render of one camera at one time.
@@ -110,11 +106,12 @@ impl Service {
         )
         .map_err(|e| e.to_string())?;
         let renderer = Renderer::new(config.renderer)?;
-        let job_slots = match config.max_concurrent_jobs {
-            0 => std::thread::available_parallelism().map_or(2, |n| n.get()),
-            n => n,
-        };
-        tracing::info!(renderer = renderer.name(), job_slots, "service ready");
+        let work = WorkSlots::new(config.max_concurrent_work(), config.max_queued_work());
+        tracing::info!(
+            renderer = renderer.name(),
+            work_slots = work.capacity(),
+            "service ready"
+        );
         Ok(Self {
             engine,
             store,
@@ -124,9 +121,7 @@ impl Service {
             jobs,
             model_key,
             encode_slots: Arc::new(Semaphore::new(config.max_concurrent_encodes.max(1))),
-            job_slots: Arc::new(Semaphore::new(job_slots)),
-            queued_jobs: AtomicUsize::new(0),
-            max_queued_jobs: config.max_queued_jobs,
+            work,
         })
     }
 
@@ -135,7 +130,7 @@ impl Service {
         self: &Arc<Self>,
         media: Media,
         options: IntakeOptions,
-    ) -> Result<(Arc<ClipRecord>, bool), ApiError> {
+    ) -> Result<(Arc<ClipRecord>, bool), ServiceError> {
         let id = intake::clip_id(&self.model_key, &media, &options);
         self.store
             .get_or_create(&id, || self.encode(id.clone(), media, options))
@@ -147,10 +142,10 @@ impl Service {
         id: String,
         media: Media,
         options: IntakeOptions,
-    ) -> Result<NewClip, ApiError> {
+    ) -> Result<NewClip, ServiceError> {
         let _slot = self.encode_slots.clone().try_acquire_owned().map_err(|_| {
             metrics::counter!("c4g_rejected_total", "reason" => "encodes_busy").increment(1);
-            ApiError::Busy {
+            ServiceError::Busy {
                 retry_after: ENCODE_RETRY_AFTER,
             }
         })?;
@@ -170,15 +165,15 @@ impl Service {
                         service.engine.preprocess(&f.image)?,
                     ))
                 })
-                .collect::<Result<Vec<_>, ApiError>>()?;
+                .collect::<Result<Vec<_>, ServiceError>>()?;
             let encoding = service.engine.encode(&context)?;
             metrics::histogram!("c4g_encode_duration_seconds")
                 .record(started.elapsed().as_secs_f64());
             let frames = intake.frames.into_iter().map(|f| f.image).collect();
-            Ok::<_, ApiError>((encoding, frames))
+            Ok::<_, ServiceError>((encoding, frames))
         })
         .await
-        .map_err(|e| ApiError::Internal(format!("encoding panicked: {e}")))??;
+        .map_err(|e| ServiceError::Internal(format!("encoding panicked: {e}")))??;
         tracing::info!(clip = %id, frames = encoding.frame_count(), "clip encoded");
         Ok(NewClip {
             record: ClipRecord {
@@ -196,40 +191,25 @@ impl Service {
         })
     }
 
-    /// Runs CPU work on a blocking thread once a job slot is free.
-    pub async fn job<T: Send + 'static>(
+    /// Runs a decode or render on a blocking thread once a work slot is free.
+    pub async fn work<T: Send + 'static>(
         self: &Arc<Self>,
-        work: impl FnOnce(&Service) -> Result<T, ApiError> + Send + 'static,
-    ) -> Result<T, ApiError> {
-        if self.queued_jobs.fetch_add(1, Ordering::SeqCst) >= self.max_queued_jobs {
-            self.queued_jobs.fetch_sub(1, Ordering::SeqCst);
-            metrics::counter!("c4g_rejected_total", "reason" => "queue_full").increment(1);
-            return Err(ApiError::Overloaded {
-                retry_after: JOB_RETRY_AFTER,
-            });
-        }
-        let permit = self.job_slots.clone().acquire_owned().await;
-        self.queued_jobs.fetch_sub(1, Ordering::SeqCst);
-        let permit = permit.map_err(|_| ApiError::Internal("the job pool is closed".into()))?;
+        work: impl FnOnce(&Service) -> Result<T, ServiceError> + Send + 'static,
+    ) -> Result<T, ServiceError> {
         let service = self.clone();
-        tokio::task::spawn_blocking(move || {
-            let _permit = permit;
-            work(&service)
-        })
-        .await
-        .map_err(|e| ApiError::Internal(format!("a job panicked: {e}")))?
+        self.work.run(move || work(&service)).await
     }
 
     /// Checks that `times` can be decoded for `record`: finite, inside the context span, not
     /// too many.
-    pub fn check_times(&self, record: &ClipRecord, times: &[f64]) -> Result<(), ApiError> {
+    pub fn check_times(&self, record: &ClipRecord, times: &[f64]) -> Result<(), ServiceError> {
         if times.is_empty() {
-            return Err(ApiError::invalid(
+            return Err(ServiceError::invalid(
                 "give at least one time (\"t\" or \"times\")",
             ));
         }
         if times.len() > self.limits.max_times {
-            return Err(ApiError::TooLarge(format!(
+            return Err(ServiceError::TooLarge(format!(
                 "{} times in one request; at most {} (C4G_MAX_TIMES)",
                 times.len(),
                 self.limits.max_times
@@ -238,12 +218,12 @@ impl Service {
         let (first, last) = record.span();
         for &t in times {
             if !t.is_finite() {
-                return Err(ApiError::invalid(format!(
+                return Err(ServiceError::invalid(format!(
                     "times must be finite numbers of seconds, got {t}"
                 )));
             }
             if t < first || t > last {
-                return Err(ApiError::invalid(format!(
+                return Err(ServiceError::invalid(format!(
                     "t = {t} s is outside the clip's context span [{first}, {last}] s: the model \
                      interpolates between its context frames and does not extrapolate"
                 )));
@@ -257,11 +237,11 @@ impl Service {
         self: &Arc<Self>,
         id: &str,
         times: Vec<f64>,
-    ) -> Result<Vec<(f64, GaussianSet)>, ApiError> {
+    ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
         let record = self.store.get(id)?;
         self.check_times(&record, &times)?;
         let encoding = self.store.encoding(id).await?;
-        self.job(move |service| service.decode_now(&encoding, &times))
+        self.work(move |service| service.decode_now(&encoding, &times))
             .await
     }
 
@@ -270,7 +250,7 @@ impl Service {
         &self,
         encoding: &Encoding,
         times: &[f64],
-    ) -> Result<Vec<(f64, GaussianSet)>, ApiError> {
+    ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
         let started = Instant::now();
         let sets = self.engine.decode(encoding, times)?;
         metrics::histogram!("c4g_decode_duration_seconds").record(started.elapsed().as_secs_f64());
@@ -282,17 +262,17 @@ impl Service {
         &self,
         width: Option<u32>,
         height: Option<u32>,
-    ) -> Result<(u32, u32), ApiError> {
+    ) -> Result<(u32, u32), ServiceError> {
         let input = &self.engine.manifest().input;
         let (w, h) = (width.unwrap_or(input.width), height.unwrap_or(input.height));
         if w == 0 || h == 0 {
-            return Err(ApiError::invalid(format!(
+            return Err(ServiceError::invalid(format!(
                 "image size {w}x{h} must be at least 1x1"
             )));
         }
         let max = self.limits.max_side;
         if w > max || h > max || u64::from(w) * u64::from(h) > self.limits.max_render_pixels {
-            return Err(ApiError::TooLarge(format!(
+            return Err(ServiceError::TooLarge(format!(
                 "image size {w}x{h} is over the limit: sides up to {max} (C4G_MAX_SIDE), {} \
                  pixels in all (C4G_MAX_RENDER_PIXELS)",
                 self.limits.max_render_pixels
@@ -306,18 +286,18 @@ impl Service {
         self: &Arc<Self>,
         id: &str,
         view: ViewRequest,
-    ) -> Result<Image, ApiError> {
+    ) -> Result<Image, ServiceError> {
         let record = self.store.get(id)?;
         self.check_times(&record, &[view.t])?;
         let (w, h) = self.image_size(view.width, view.height)?;
         let camera = view.camera.camera(w, h)?;
         check_background(view.background)?;
         let encoding = self.store.encoding(id).await?;
-        self.job(move |service| {
+        self.work(move |service| {
             let (_, set) = service
                 .decode_now(&encoding, &[view.t])?
                 .pop()
-                .ok_or_else(|| ApiError::Internal("the decoder returned no set".into()))?;
+                .ok_or_else(|| ServiceError::Internal("the decoder returned no set".into()))?;
             service.render_now(&set, &camera, view.background)
         })
         .await
@@ -329,7 +309,7 @@ impl Service {
         set: &GaussianSet,
         camera: &Camera,
         background: [f32; 3],
-    ) -> Result<Image, ApiError> {
+    ) -> Result<Image, ServiceError> {
         let started = Instant::now();
         let image = self.renderer.render(set, camera, background)?;
         metrics::histogram!("c4g_render_duration_seconds").record(started.elapsed().as_secs_f64());
@@ -341,18 +321,18 @@ impl Service {
         &self,
         record: &ClipRecord,
         path: &PathRequest,
-    ) -> Result<Vec<(f64, Camera)>, ApiError> {
+    ) -> Result<Vec<(f64, Camera)>, ServiceError> {
         let (w, h) = self.image_size(path.width, path.height)?;
         check_background(path.background)?;
         let cameras = match (&path.preset, path.cameras.is_empty()) {
             (Some(_), false) => {
-                return Err(ApiError::invalid(
+                return Err(ServiceError::invalid(
                     "give a trajectory preset or explicit cameras, not both",
                 ));
             }
             (None, false) => {
                 if path.frames.is_some_and(|n| n != path.cameras.len()) {
-                    return Err(ApiError::invalid(
+                    return Err(ServiceError::invalid(
                         "with explicit cameras the frame count is the number of cameras",
                     ));
                 }
@@ -364,7 +344,7 @@ impl Service {
             (preset, true) => {
                 let frames = path.frames.unwrap_or(DEFAULT_PATH_FRAMES);
                 if frames == 0 || frames > self.limits.max_times {
-                    return Err(ApiError::invalid(format!(
+                    return Err(ServiceError::invalid(format!(
                         "frames must be between 1 and {} (C4G_MAX_TIMES), got {frames}",
                         self.limits.max_times
                     )));
@@ -397,7 +377,7 @@ impl Service {
         encoding: &Encoding,
         plan: &[(f64, Camera)],
         background: [f32; 3],
-    ) -> Result<Vec<Image>, ApiError> {
+    ) -> Result<Vec<Image>, ServiceError> {
         let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
         let sets = self.decode_now(encoding, &times)?;
         sets.iter()
@@ -407,10 +387,10 @@ impl Service {
     }
 
     /// The clip's context frame `index` (upload order) as PNG bytes.
-    pub fn context_frame_png(&self, id: &str, index: usize) -> Result<Vec<u8>, ApiError> {
+    pub fn context_frame_png(&self, id: &str, index: usize) -> Result<Vec<u8>, ServiceError> {
         let record = self.store.get(id)?;
         if index >= record.context_times.len() {
-            return Err(ApiError::NotFound(format!(
+            return Err(ServiceError::NotFound(format!(
                 "clip {id} has {} context frames (0..{})",
                 record.context_times.len(),
                 record.context_times.len()
@@ -419,7 +399,7 @@ impl Service {
         let mut bytes = Vec::new();
         std::fs::File::open(self.store.frame_path(id, index))
             .and_then(|mut f| f.read_to_end(&mut bytes))
-            .map_err(|e| ApiError::Internal(format!("cannot read a context frame: {e}")))?;
+            .map_err(|e| ServiceError::Internal(format!("cannot read a context frame: {e}")))?;
         Ok(bytes)
     }
 
@@ -429,7 +409,7 @@ impl Service {
     }
 }
 
-fn check_background(background: [f32; 3]) -> Result<(), ApiError> {
+fn check_background(background: [f32; 3]) -> Result<(), ServiceError> {
     // The renderer's own check, run before any decoding is spent on the request.
     let options = c4g_renderer::RenderOptions {
         background,

@@ -5,7 +5,7 @@ use std::sync::{Arc, OnceLock};
 
 use metrics_exporter_prometheus::PrometheusHandle;
 
-use crate::ApiError;
+use crate::ServiceError;
 use crate::auth::ApiKey;
 use crate::config::Config;
 use crate::service::Service;
@@ -43,8 +43,8 @@ impl AppState {
     }
 
     /// The service, once the model has loaded.
-    pub fn service(&self) -> Result<&Arc<Service>, ApiError> {
-        self.shared.service.get().ok_or(ApiError::NotReady)
+    pub fn service(&self) -> Result<&Arc<Service>, ServiceError> {
+        self.shared.service.get().ok_or(ServiceError::NotReady)
     }
 
     /// The settings the server started with.

@@ -25,7 +25,7 @@ use lru::LruCache;
 use serde::{Deserialize, Serialize};
 use tokio::sync::OnceCell;
 
-use crate::ApiError;
+use crate::ServiceError;
 use crate::intake::{IntakeOptions, SourceInfo};
 
 /// What the store knows about a clip without its features.
@@ -92,14 +92,14 @@ impl ClipStore {
     /// Opens (creating) the store for the model with key `model_key` under `root`, loading every
     /// clip's record (features load when first asked for). Unreadable clip directories are
     /// logged and skipped, never deleted.
-    pub fn open(root: &Path, model_key: &str, budget_bytes: u64) -> Result<Self, ApiError> {
+    pub fn open(root: &Path, model_key: &str, budget_bytes: u64) -> Result<Self, ServiceError> {
         let dir = root.join(model_key).join("clips");
         std::fs::create_dir_all(&dir).map_err(|e| {
-            ApiError::Internal(format!("cannot create the store {}: {e}", dir.display()))
+            ServiceError::Internal(format!("cannot create the store {}: {e}", dir.display()))
         })?;
         let mut records = BTreeMap::new();
         let entries = std::fs::read_dir(&dir).map_err(|e| {
-            ApiError::Internal(format!("cannot read the store {}: {e}", dir.display()))
+            ServiceError::Internal(format!("cannot read the store {}: {e}", dir.display()))
         })?;
         for entry in entries.flatten() {
             let path = entry.path();
@@ -146,7 +146,7 @@ impl ClipStore {
     }
 
     /// One clip's record.
-    pub fn get(&self, id: &str) -> Result<Arc<ClipRecord>, ApiError> {
+    pub fn get(&self, id: &str) -> Result<Arc<ClipRecord>, ServiceError> {
         self.lock()
             .records
             .get(id)
@@ -161,10 +161,10 @@ impl ClipStore {
         &self,
         id: &str,
         create: F,
-    ) -> Result<(Arc<ClipRecord>, bool), ApiError>
+    ) -> Result<(Arc<ClipRecord>, bool), ServiceError>
     where
         F: FnOnce() -> Fut,
-        Fut: Future<Output = Result<NewClip, ApiError>>,
+        Fut: Future<Output = Result<NewClip, ServiceError>>,
     {
         let cell = {
             let mut state = self.lock();
@@ -180,7 +180,7 @@ impl ClipStore {
                 let record = Arc::new(new.record.clone());
                 self.persist(new).await?;
                 created = true;
-                Ok::<_, ApiError>(record)
+                Ok::<_, ServiceError>(record)
             })
             .await
             .cloned();
@@ -196,7 +196,7 @@ impl ClipStore {
         result.map(|record| (record, created))
     }
 
-    async fn persist(&self, new: NewClip) -> Result<(), ApiError> {
+    async fn persist(&self, new: NewClip) -> Result<(), ServiceError> {
         let NewClip {
             record,
             encoding,
@@ -207,7 +207,7 @@ impl ClipStore {
         let to_write = (record.clone(), encoding.clone());
         tokio::task::spawn_blocking(move || write_clip(&dir, &to_write.0, &to_write.1, &frames))
             .await
-            .map_err(|e| ApiError::Internal(format!("writing a clip panicked: {e}")))??;
+            .map_err(|e| ServiceError::Internal(format!("writing a clip panicked: {e}")))??;
         let mut state = self.lock();
         state.records.insert(id.clone(), Arc::new(record));
         metrics::gauge!("c4g_clips").set(state.records.len() as f64);
@@ -216,7 +216,7 @@ impl ClipStore {
     }
 
     /// The clip's encoder features: from memory, or read back from disk.
-    pub async fn encoding(&self, id: &str) -> Result<Arc<Encoding>, ApiError> {
+    pub async fn encoding(&self, id: &str) -> Result<Arc<Encoding>, ServiceError> {
         let record = {
             let mut state = self.lock();
             if let Some(encoding) = state.cache.get(id) {
@@ -233,7 +233,7 @@ impl ClipStore {
         let path = self.dir.join(id);
         let encoding = tokio::task::spawn_blocking(move || read_features(&path, &record))
             .await
-            .map_err(|e| ApiError::Internal(format!("reading features panicked: {e}")))??;
+            .map_err(|e| ServiceError::Internal(format!("reading features panicked: {e}")))??;
         let encoding = Arc::new(encoding);
         let mut state = self.lock();
         if state.records.contains_key(id) {
@@ -268,7 +268,7 @@ impl ClipStore {
     }
 
     /// Deletes a clip from memory and disk.
-    pub fn delete(&self, id: &str) -> Result<(), ApiError> {
+    pub fn delete(&self, id: &str) -> Result<(), ServiceError> {
         {
             let mut state = self.lock();
             if state.records.remove(id).is_none() {
@@ -285,12 +285,12 @@ impl ClipStore {
         let doomed = self.dir.join(format!(".deleted-{id}"));
         std::fs::rename(&path, &doomed)
             .and_then(|()| std::fs::remove_dir_all(&doomed))
-            .map_err(|e| ApiError::Internal(format!("cannot delete clip {id} from disk: {e}")))
+            .map_err(|e| ServiceError::Internal(format!("cannot delete clip {id} from disk: {e}")))
     }
 }
 
-fn not_found(id: &str) -> ApiError {
-    ApiError::NotFound(format!(
+fn not_found(id: &str) -> ServiceError {
+    ServiceError::NotFound(format!(
         "no clip {id:?}: upload it with POST /v1/clips (GET /v1/clips lists the stored ones)"
     ))
 }
@@ -305,9 +305,9 @@ fn write_clip(
     record: &ClipRecord,
     encoding: &Encoding,
     frames: &[RgbImage],
-) -> Result<(), ApiError> {
+) -> Result<(), ServiceError> {
     let fail = |what: &str, e: &dyn std::fmt::Display| {
-        ApiError::Internal(format!("cannot store clip {}: {what}: {e}", record.id))
+        ServiceError::Internal(format!("cannot store clip {}: {what}: {e}", record.id))
     };
     let nonce = SystemTime::now()
         .duration_since(UNIX_EPOCH)
@@ -345,9 +345,9 @@ fn write_clip(
     std::fs::rename(&tmp, &target).map_err(|e| fail("moving into place", &e))
 }
 
-fn read_features(dir: &Path, record: &ClipRecord) -> Result<Encoding, ApiError> {
+fn read_features(dir: &Path, record: &ClipRecord) -> Result<Encoding, ServiceError> {
     let bytes = std::fs::read(dir.join("features.f32")).map_err(|e| {
-        ApiError::Internal(format!(
+        ServiceError::Internal(format!(
             "cannot read the features of clip {}: {e}",
             record.id
         ))
@@ -363,7 +363,7 @@ fn read_features(dir: &Path, record: &ClipRecord) -> Result<Encoding, ApiError> 
         record.feature_shape,
     )
     .map_err(|e| {
-        ApiError::Internal(format!(
+        ServiceError::Internal(format!(
             "the stored features of clip {} are damaged: {e}",
             record.id
         ))

@@ -10,7 +10,7 @@ use tonic::{Request, Response, Status, Streaming};
 use crate::jobs::Progress;
 use crate::refine::build_job;
 use crate::service::Service;
-use crate::{ApiError, AppState};
+use crate::{AppState, ServiceError, ServiceErrorKind};
 
 /// Longest a worker's `Take` waits for a job.
 const MAX_WAIT: Duration = Duration::from_secs(30);
@@ -47,9 +47,10 @@ impl Jobs for Workers {
             || request.width == 0
             || request.height == 0
         {
-            return Err(Status::invalid_argument(
+            return Err(ServiceError::invalid(
                 "a worker names itself and the frames, width and height its model refines",
-            ));
+            )
+            .into());
         }
         let (w, h) = service.image_size(Some(request.width), Some(request.height))?;
         let wait = Duration::from_millis(u64::from(request.wait_ms)).min(MAX_WAIT);
@@ -65,8 +66,10 @@ impl Jobs for Workers {
                 Err(e) => {
                     // Nothing a worker can do about a job it cannot be given: it fails, and the
                     // worker gets the next one.
-                    let retryable =
-                        matches!(e, ApiError::Internal(_) | ApiError::Overloaded { .. });
+                    let retryable = matches!(
+                        e.kind(),
+                        ServiceErrorKind::Internal | ServiceErrorKind::Overloaded
+                    );
                     service.jobs.fail(
                         &record.id,
                         &request.worker,
@@ -106,33 +109,32 @@ impl Jobs for Workers {
             Some(pb::FinishRequest {
                 part: Some(pb::finish_request::Part::Header(h)),
             }) => h,
-            _ => return Err(Status::invalid_argument("a result starts with its header")),
+            _ => return Err(ServiceError::invalid("a result starts with its header").into()),
         };
         let mut frames = Vec::new();
         while let Some(message) = stream.message().await? {
             match message.part {
                 Some(pb::finish_request::Part::FramePng(png)) => frames.push(png),
                 _ => {
-                    return Err(Status::invalid_argument(
-                        "after the header a result sends frames",
-                    ));
+                    return Err(
+                        ServiceError::invalid("after the header a result sends frames").into(),
+                    );
                 }
             }
         }
         if frames.len() != header.frames as usize {
-            return Err(Status::invalid_argument(format!(
+            return Err(ServiceError::invalid(format!(
                 "the header announced {} frames, {} came",
                 header.frames,
                 frames.len()
-            )));
+            ))
+            .into());
         }
         if let Some(bad) = frames
             .iter()
             .position(|f| !matches!(image::guess_format(f), Ok(image::ImageFormat::Png)))
         {
-            return Err(Status::invalid_argument(format!(
-                "result frame {bad} is not a PNG"
-            )));
+            return Err(ServiceError::invalid(format!("result frame {bad} is not a PNG")).into());
         }
         let record = tokio::task::spawn_blocking(move || {
             service
@@ -140,7 +142,7 @@ impl Jobs for Workers {
                 .finish(&header.job_id, &header.worker, &frames, header.seconds)
         })
         .await
-        .map_err(|e| Status::internal(format!("storing a result panicked: {e}")))??;
+        .map_err(|e| ServiceError::Internal(format!("storing a result panicked: {e}")))??;
         tracing::info!(job = %record.id, frames = record.result_frames, "job done");
         Ok(Response::new(pb::FinishResponse {}))
     }

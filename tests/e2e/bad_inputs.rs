@@ -354,3 +354,83 @@ fn api_keys_and_grpc_limits_are_enforced_and_the_server_keeps_serving() {
     });
     assert!(server.alive());
 }
+
+#[test]
+fn a_full_work_queue_is_refused_over_rest_and_grpc_with_its_kind_and_the_old_setting_names_work() {
+    if !ort_available() {
+        return;
+    }
+    // The old name of C4G_MAX_QUEUED_WORK; a queue of 0 refuses every decode and render at once,
+    // while uploads (which take encode slots, not work slots) still go through.
+    let mut server = Server::start_env(&[("C4G_MAX_QUEUED_JOBS", "0")], &[]);
+    let client = Client::new();
+    let (frames, times) = synthetic_clip();
+    let clip: Value = client
+        .post(server.at("/v1/clips"))
+        .multipart(frames_form(&frames, &times))
+        .send()
+        .unwrap()
+        .json()
+        .unwrap();
+    let id = clip["id"].as_str().unwrap().to_owned();
+    let refused = client
+        .post(server.at(&format!("/v1/clips/{id}/gaussians")))
+        .json(&json!({"t": 0.3}))
+        .send()
+        .unwrap();
+    assert!(refused.headers().contains_key("retry-after"));
+    expect_error(refused, 503, "overloaded", "overloaded");
+
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    runtime.block_on(async {
+        let mut grpc = C4gClient::connect(server.url()).await.unwrap();
+        let refused = grpc
+            .decode(pb::DecodeRequest {
+                clip_id: id.clone(),
+                times: vec![0.3],
+                precision: 0,
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(refused.code(), tonic::Code::Unavailable, "{refused:?}");
+        assert_eq!(
+            refused.metadata().get("c4g-error-kind").unwrap(),
+            "overloaded"
+        );
+        assert!(
+            refused.metadata().get("retry-after").is_some(),
+            "{refused:?}"
+        );
+        // A refusal the gRPC handler itself makes carries its kind too.
+        let bad = grpc
+            .render(pb::RenderRequest {
+                clip_id: id.clone(),
+                time: 0.3,
+                background: vec![0.0, 1.0],
+                ..Default::default()
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(bad.code(), tonic::Code::InvalidArgument, "{bad:?}");
+        assert_eq!(
+            bad.metadata().get("c4g-error-kind").unwrap(),
+            "invalid_input"
+        );
+        assert!(
+            bad.message().contains("background needs 3 values"),
+            "{bad:?}"
+        );
+        let missing = grpc
+            .get_clip(pb::ClipRef {
+                clip_id: "no-such-clip".into(),
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(missing.code(), tonic::Code::NotFound);
+        assert_eq!(
+            missing.metadata().get("c4g-error-kind").unwrap(),
+            "not_found"
+        );
+    });
+    assert!(server.alive());
+}

@@ -89,10 +89,20 @@ impl Server {
 
     /// Starts it on an existing store directory (to test what survives a restart).
     pub fn start_in(store: tempfile::TempDir, args: &[&str]) -> Server {
+        Self::start_with(store, &[], args)
+    }
+
+    /// Starts it with settings given as environment variables (`C4G_*`) as well as `args`.
+    pub fn start_env(env: &[(&str, &str)], args: &[&str]) -> Server {
+        Self::start_with(tempfile::tempdir().unwrap(), env, args)
+    }
+
+    fn start_with(store: tempfile::TempDir, env: &[(&str, &str)], args: &[&str]) -> Server {
         let mut child = Command::new(binary("c4g-server"))
             .current_dir(workspace())
             .env_remove("C4G_MODEL")
             .env_remove("C4G_API_KEY")
+            .envs(env.iter().copied())
             .args(["--listen", "127.0.0.1:0", "--store-dir"])
             .arg(store.path())
             .args(args)

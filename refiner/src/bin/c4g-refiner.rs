@@ -7,7 +7,7 @@ use std::process::ExitCode;
 use std::sync::Arc;
 
 use c4g_refiner::worker::{WorkerConfig, run};
-use c4g_refiner::{LoraSpec, Pipeline, PipelineOptions};
+use c4g_refiner::{LoraSpec, Pipeline, PipelineOptions, SessionOptions};
 use clap::Parser;
 use tracing_subscriber::EnvFilter;
 
@@ -61,9 +61,11 @@ async fn main() -> ExitCode {
             path,
             scale: args.lora_scale,
         }),
-        intra_op_threads: args.intra_op_threads,
+        session: SessionOptions {
+            intra_op_threads: args.intra_op_threads,
+            ..SessionOptions::default()
+        },
         skip_text_encoder: args.no_text_encoder,
-        ..PipelineOptions::default()
     };
     let package = args.package.clone();
     let pipeline =

@@ -1,13 +1,16 @@
-//! Gaussian sets on disk, in the formats other tools read.
+//! Gaussian sets as bytes: on disk, in the formats other tools read, and on the service's wire.
 //!
 //! - [`ply`]: the 3D Gaussian splatting `.ply` (what trainers and most viewers exchange), read in
 //!   any of its variations, written in the common binary layout, optionally with feature columns;
 //! - [`splat`]: antimatter15's compact `.splat` (32 bytes a Gaussian), for web viewers;
-//! - [`series`]: a time series of Gaussian sets: a directory of `.ply` files and a JSON index.
+//! - [`series`]: a time series of Gaussian sets: a directory of `.ply` files and a JSON index;
+//! - [`c4gs`]: the service's packed `C4GS` frames (`f32` or `f16` columns), and the column
+//!   packing the gRPC messages share with it.
 //!
 //! Every reader fails with a [`RendererError::Format`](crate::RendererError::Format) that says
 //! what is wrong and where, never with a panic, whatever the bytes.
 
+pub mod c4gs;
 pub mod ply;
 pub mod series;
 pub mod splat;

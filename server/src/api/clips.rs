@@ -12,7 +12,7 @@ use serde_json::{Value, json};
 
 use crate::intake::{IntakeOptions, Media, MediaKind};
 use crate::store::ClipRecord;
-use crate::{ApiError, AppState};
+use crate::{AppState, ServiceError};
 
 /// A clip as the API shows it.
 pub fn clip_json(record: &ClipRecord, created: Option<bool>) -> Value {
@@ -34,7 +34,10 @@ pub fn clip_json(record: &ClipRecord, created: Option<bool>) -> Value {
     value
 }
 
-pub async fn upload(State(state): State<AppState>, request: Request) -> Result<Response, ApiError> {
+pub async fn upload(
+    State(state): State<AppState>,
+    request: Request,
+) -> Result<Response, ServiceError> {
     let service = state.service()?.clone();
     let limit = service.limits.max_body_bytes;
     let mut fields = query_pairs(request.uri().query())?;
@@ -47,7 +50,7 @@ pub async fn upload(State(state): State<AppState>, request: Request) -> Result<R
     let media = if content_type.starts_with("multipart/form-data") {
         let multipart = Multipart::from_request(request, &())
             .await
-            .map_err(|e| ApiError::invalid(format!("not a readable multipart body: {e}")))?;
+            .map_err(|e| ServiceError::invalid(format!("not a readable multipart body: {e}")))?;
         read_multipart(multipart, limit, &mut fields).await?
     } else {
         let kind = match content_type.split(';').next().unwrap_or("").trim() {
@@ -70,16 +73,18 @@ pub async fn upload(State(state): State<AppState>, request: Request) -> Result<R
     Ok((status, Json(clip_json(&record, Some(created)))).into_response())
 }
 
-async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
+async fn read_body(body: Body, limit: usize) -> Result<Bytes, ServiceError> {
     match Limited::new(body, limit).collect().await {
         Ok(collected) => Ok(collected.to_bytes()),
         Err(e) if e.downcast_ref::<LengthLimitError>().is_some() => Err(too_large(limit)),
-        Err(e) => Err(ApiError::invalid(format!("the upload was cut off: {e}"))),
+        Err(e) => Err(ServiceError::invalid(format!(
+            "the upload was cut off: {e}"
+        ))),
     }
 }
 
-fn too_large(limit: usize) -> ApiError {
-    ApiError::TooLarge(format!(
+fn too_large(limit: usize) -> ServiceError {
+    ServiceError::TooLarge(format!(
         "the upload is over {limit} bytes (C4G_MAX_BODY_MIB)"
     ))
 }
@@ -88,7 +93,7 @@ async fn read_multipart(
     mut multipart: Multipart,
     limit: usize,
     fields: &mut Vec<(String, String)>,
-) -> Result<Media, ApiError> {
+) -> Result<Media, ServiceError> {
     let mut file: Option<Bytes> = None;
     let mut frames = Vec::new();
     let mut total = 0usize;
@@ -96,7 +101,7 @@ async fn read_multipart(
         if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
             too_large(limit)
         } else {
-            ApiError::invalid(format!(
+            ServiceError::invalid(format!(
                 "the multipart body cannot be read: {}",
                 e.body_text()
             ))
@@ -114,48 +119,49 @@ async fn read_multipart(
         }
         match name.as_str() {
             "file" if file.is_none() => file = Some(data.freeze()),
-            "file" => return Err(ApiError::invalid("send one `file` part")),
+            "file" => return Err(ServiceError::invalid("send one `file` part")),
             "frame" => frames.push(data.freeze()),
             option => {
-                let text = String::from_utf8(data.to_vec())
-                    .map_err(|_| ApiError::invalid(format!("the `{option}` field is not text")))?;
+                let text = String::from_utf8(data.to_vec()).map_err(|_| {
+                    ServiceError::invalid(format!("the `{option}` field is not text"))
+                })?;
                 fields.push((option.to_owned(), text));
             }
         }
     }
     match (file, frames.is_empty()) {
-        (Some(_), false) => Err(ApiError::invalid(
+        (Some(_), false) => Err(ServiceError::invalid(
             "send either one `file` part or `frame` parts, not both",
         )),
         (Some(data), true) => Ok(Media::File { data, kind: None }),
         (None, false) => Ok(Media::Frames(frames)),
-        (None, true) => Err(ApiError::invalid(
+        (None, true) => Err(ServiceError::invalid(
             "the multipart body has no `file` or `frame` part",
         )),
     }
 }
 
-fn query_pairs(query: Option<&str>) -> Result<Vec<(String, String)>, ApiError> {
+fn query_pairs(query: Option<&str>) -> Result<Vec<(String, String)>, ServiceError> {
     serde_urlencoded_pairs(query.unwrap_or(""))
 }
 
-fn serde_urlencoded_pairs(query: &str) -> Result<Vec<(String, String)>, ApiError> {
+fn serde_urlencoded_pairs(query: &str) -> Result<Vec<(String, String)>, ServiceError> {
     axum::extract::Query::<Vec<(String, String)>>::try_from_uri(
         &format!("/?{query}")
             .parse()
-            .map_err(|_| ApiError::invalid("the query string is malformed"))?,
+            .map_err(|_| ServiceError::invalid("the query string is malformed"))?,
     )
     .map(|q| q.0)
-    .map_err(|e| ApiError::invalid(format!("the query string is malformed: {e}")))
+    .map_err(|e| ServiceError::invalid(format!("the query string is malformed: {e}")))
 }
 
 /// Upload options from query or multipart fields, every value checked.
-fn parse_options(fields: &[(String, String)]) -> Result<IntakeOptions, ApiError> {
-    fn number<T: std::str::FromStr>(name: &str, value: &str) -> Result<T, ApiError> {
+fn parse_options(fields: &[(String, String)]) -> Result<IntakeOptions, ServiceError> {
+    fn number<T: std::str::FromStr>(name: &str, value: &str) -> Result<T, ServiceError> {
         value
             .trim()
             .parse()
-            .map_err(|_| ApiError::invalid(format!("`{name}` must be a number, got {value:?}")))
+            .map_err(|_| ServiceError::invalid(format!("`{name}` must be a number, got {value:?}")))
     }
     let mut options = IntakeOptions::default();
     for (name, value) in fields {
@@ -175,7 +181,7 @@ fn parse_options(fields: &[(String, String)]) -> Result<IntakeOptions, ApiError>
                 );
             }
             other => {
-                return Err(ApiError::invalid(format!(
+                return Err(ServiceError::invalid(format!(
                     "unknown upload option `{other}`: use fps, timestamps, max_frames, stride, \
                      start or end"
                 )));
@@ -185,7 +191,7 @@ fn parse_options(fields: &[(String, String)]) -> Result<IntakeOptions, ApiError>
     Ok(options)
 }
 
-pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ApiError> {
+pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ServiceError> {
     let clips: Vec<Value> = state
         .service()?
         .store
@@ -199,7 +205,7 @@ pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ApiError
 pub async fn get(
     State(state): State<AppState>,
     Path(id): Path<String>,
-) -> Result<Json<Value>, ApiError> {
+) -> Result<Json<Value>, ServiceError> {
     let record = state.service()?.store.get(&id)?;
     Ok(Json(clip_json(&record, None)))
 }
@@ -207,7 +213,7 @@ pub async fn get(
 pub async fn delete(
     State(state): State<AppState>,
     Path(id): Path<String>,
-) -> Result<StatusCode, ApiError> {
+) -> Result<StatusCode, ServiceError> {
     state.service()?.store.delete(&id)?;
     Ok(StatusCode::NO_CONTENT)
 }
@@ -215,7 +221,7 @@ pub async fn delete(
 pub async fn frame(
     State(state): State<AppState>,
     Path((id, index)): Path<(String, usize)>,
-) -> Result<Response, ApiError> {
+) -> Result<Response, ServiceError> {
     let png = state.service()?.context_frame_png(&id, index)?;
     Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response())
 }

@@ -1,12 +1,10 @@
 //! `/openapi.json` (the REST contract), `/docs` (a page that renders it), `/metrics`, and the
 //! JSON 404 for unknown paths.
 
+use crate::{AppState, ServiceError};
 use axum::extract::State;
 use axum::http::{StatusCode, header};
 use axum::response::{Html, IntoResponse, Response};
-use serde_json::json;
-
-use crate::AppState;
 
 /// The OpenAPI 3.1 description of the REST API (kept beside the code; a test checks that it
 /// names every route).
@@ -35,13 +33,6 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
     }
 }
 
-pub async fn not_found() -> Response {
-    (
-        StatusCode::NOT_FOUND,
-        axum::Json(json!({
-            "error": "no such endpoint: see /docs (or /openapi.json) for the API",
-            "kind": "not_found"
-        })),
-    )
-        .into_response()
+pub async fn not_found() -> ServiceError {
+    ServiceError::NotFound("no such endpoint: see /docs (or /openapi.json) for the API".into())
 }

@@ -10,7 +10,7 @@ use serde::Deserialize;
 
 use super::json::JsonBody;
 use crate::wire::{self, Precision};
-use crate::{ApiError, AppState};
+use crate::{AppState, ServiceError};
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -50,14 +50,16 @@ pub async fn decode(
     Path(id): Path<String>,
     headers: HeaderMap,
     JsonBody(request): JsonBody<GaussiansRequest>,
-) -> Result<Response, ApiError> {
+) -> Result<Response, ServiceError> {
     let service = state.service()?;
     let times = match (request.t, request.times) {
         (Some(t), None) => vec![t],
         (None, Some(times)) => times,
-        (Some(_), Some(_)) => return Err(ApiError::invalid("give \"t\" or \"times\", not both")),
+        (Some(_), Some(_)) => {
+            return Err(ServiceError::invalid("give \"t\" or \"times\", not both"));
+        }
         (None, None) => {
-            return Err(ApiError::invalid(
+            return Err(ServiceError::invalid(
                 "give a time: {\"t\": 0.5} or {\"times\": [..]}",
             ));
         }
@@ -67,7 +69,7 @@ pub async fn decode(
         .or_else(|| GaussianFormat::from_accept(&headers))
         .unwrap_or(GaussianFormat::Json);
     if matches!(format, GaussianFormat::Ply | GaussianFormat::Splat) && times.len() != 1 {
-        return Err(ApiError::invalid(
+        return Err(ServiceError::invalid(
             "ply and splat hold one set: ask for one time (or use json or binary)",
         ));
     }
@@ -76,7 +78,7 @@ pub async fn decode(
         GaussianFormat::Json => Json(wire::json(&frames)).into_response(),
         GaussianFormat::Binary => (
             [(header::CONTENT_TYPE, "application/x-c4g-gaussians")],
-            wire::binary(&frames, request.precision),
+            wire::binary(&frames, request.precision)?,
         )
             .into_response(),
         GaussianFormat::Ply => (

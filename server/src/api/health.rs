@@ -4,13 +4,13 @@ use axum::Json;
 use axum::extract::State;
 use serde_json::{Value, json};
 
-use crate::{ApiError, AppState};
+use crate::{AppState, ServiceError};
 
 pub async fn health() -> Json<Value> {
     Json(json!({ "status": "ok" }))
 }
 
-pub async fn ready(State(state): State<AppState>) -> Result<Json<Value>, ApiError> {
+pub async fn ready(State(state): State<AppState>) -> Result<Json<Value>, ServiceError> {
     let service = state.service()?;
     Ok(Json(
         json!({ "status": "ready", "model": service.engine.manifest().name }),

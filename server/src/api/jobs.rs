@@ -14,20 +14,20 @@ use serde::Deserialize;
 use serde_json::{Value, json};
 
 use super::json::JsonBody;
+use crate::image_formats::encode_mp4;
 use crate::jobs::JobState;
 use crate::refine::RefineRequest;
-use crate::render::encode_mp4;
-use crate::{ApiError, AppState};
+use crate::{AppState, ServiceError};
 
 pub async fn submit(
     State(state): State<AppState>,
     Path(clip_id): Path<String>,
     JsonBody(request): JsonBody<RefineRequest>,
-) -> Result<Response, ApiError> {
+) -> Result<Response, ServiceError> {
     let service = state.service()?;
     request.validate(service, &clip_id)?;
     let stored = serde_json::to_value(&request)
-        .map_err(|e| ApiError::Internal(format!("cannot store the request: {e}")))?;
+        .map_err(|e| ServiceError::Internal(format!("cannot store the request: {e}")))?;
     let record = service.jobs.create(&clip_id, stored)?;
     let location = format!("/v1/jobs/{}", record.id);
     Ok((
@@ -38,21 +38,21 @@ pub async fn submit(
         .into_response())
 }
 
-pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ApiError> {
+pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ServiceError> {
     Ok(Json(json!({ "jobs": state.service()?.jobs.list() })))
 }
 
 pub async fn get(
     State(state): State<AppState>,
     Path(id): Path<String>,
-) -> Result<Json<Value>, ApiError> {
+) -> Result<Json<Value>, ServiceError> {
     Ok(Json(json!(state.service()?.jobs.get(&id)?)))
 }
 
 pub async fn cancel(
     State(state): State<AppState>,
     Path(id): Path<String>,
-) -> Result<Json<Value>, ApiError> {
+) -> Result<Json<Value>, ServiceError> {
     Ok(Json(json!(state.service()?.jobs.cancel(&id)?)))
 }
 
@@ -61,7 +61,7 @@ pub async fn cancel(
 pub async fn events(
     State(state): State<AppState>,
     Path(id): Path<String>,
-) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
+) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ServiceError> {
     let mut updates = state.service()?.jobs.subscribe(&id)?;
     let stream = async_stream(move |tx| async move {
         loop {
@@ -101,11 +101,11 @@ pub async fn result(
     State(state): State<AppState>,
     Path(id): Path<String>,
     Query(query): Query<ResultQuery>,
-) -> Result<Response, ApiError> {
+) -> Result<Response, ServiceError> {
     let service = state.service()?.clone();
     let record = service.jobs.get(&id)?;
     if record.state != JobState::Done {
-        return Err(ApiError::invalid(format!(
+        return Err(ServiceError::invalid(format!(
             "job {id} is {:?}: its result exists once it is done (GET /v1/jobs/{id})",
             record.state
         )));
@@ -113,14 +113,14 @@ pub async fn result(
     let dir = service.jobs.result_dir(&id);
     if let Some(k) = query.frame {
         if k >= record.result_frames {
-            return Err(ApiError::NotFound(format!(
+            return Err(ServiceError::NotFound(format!(
                 "job {id} has {} refined frames (0..{})",
                 record.result_frames, record.result_frames
             )));
         }
         let png = tokio::fs::read(dir.join(format!("{k:04}.png")))
             .await
-            .map_err(|e| ApiError::Internal(format!("cannot read a result frame: {e}")))?;
+            .map_err(|e| ServiceError::Internal(format!("cannot read a result frame: {e}")))?;
         return Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response());
     }
     let video = dir.join("result.mp4");
@@ -130,9 +130,9 @@ pub async fn result(
         for k in 0..record.result_frames {
             let png = tokio::fs::read(dir.join(format!("{k:04}.png")))
                 .await
-                .map_err(|e| ApiError::Internal(format!("cannot read a result frame: {e}")))?;
+                .map_err(|e| ServiceError::Internal(format!("cannot read a result frame: {e}")))?;
             let image = image::load_from_memory(&png)
-                .map_err(|e| ApiError::Internal(format!("a result frame is unreadable: {e}")))?
+                .map_err(|e| ServiceError::Internal(format!("a result frame is unreadable: {e}")))?
                 .to_rgb8();
             (width, height) = image.dimensions();
             frames.push(image.into_raw());
@@ -152,10 +152,11 @@ pub async fn result(
             Ok(()) => tokio::fs::rename(&tmp, &video).await,
             Err(e) => Err(e),
         };
-        stored.map_err(|e| ApiError::Internal(format!("cannot store the result video: {e}")))?;
+        stored
+            .map_err(|e| ServiceError::Internal(format!("cannot store the result video: {e}")))?;
     }
     let mp4 = tokio::fs::read(&video)
         .await
-        .map_err(|e| ApiError::Internal(format!("cannot read the result video: {e}")))?;
+        .map_err(|e| ServiceError::Internal(format!("cannot read the result video: {e}")))?;
     Ok(([(header::CONTENT_TYPE, "video/mp4")], mp4).into_response())
 }

@@ -5,18 +5,18 @@ use axum::extract::{FromRequest, Request};
 use bytes::Bytes;
 use serde::de::DeserializeOwned;
 
-use crate::ApiError;
+use crate::ServiceError;
 
 /// A JSON body; an empty body reads as `{}`.
 pub struct JsonBody<T>(pub T);
 
 impl<S: Send + Sync, T: DeserializeOwned> FromRequest<S> for JsonBody<T> {
-    type Rejection = ApiError;
+    type Rejection = ServiceError;
 
     async fn from_request(request: Request, state: &S) -> Result<Self, Self::Rejection> {
         let bytes = Bytes::from_request(request, state)
             .await
-            .map_err(|e| ApiError::invalid(format!("cannot read the request body: {e}")))?;
+            .map_err(|e| ServiceError::invalid(format!("cannot read the request body: {e}")))?;
         let text: &[u8] = if bytes.iter().all(u8::is_ascii_whitespace) {
             b"{}"
         } else {
@@ -24,6 +24,6 @@ impl<S: Send + Sync, T: DeserializeOwned> FromRequest<S> for JsonBody<T> {
         };
         serde_json::from_slice(text)
             .map(JsonBody)
-            .map_err(|e| ApiError::invalid(format!("the JSON body is not valid: {e}")))
+            .map_err(|e| ServiceError::invalid(format!("the JSON body is not valid: {e}")))
     }
 }

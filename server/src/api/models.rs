@@ -5,9 +5,9 @@ use axum::extract::State;
 use serde_json::{Value, json};
 
 use crate::service::Service;
-use crate::{ApiError, AppState};
+use crate::{AppState, ServiceError};
 
-pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ApiError> {
+pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ServiceError> {
     let service = state.service()?;
     Ok(Json(json!({ "models": [describe(service)] })))
 }

@@ -8,9 +8,10 @@ use c4g_renderer::Trajectory;
 use serde::Deserialize;
 
 use super::json::JsonBody;
-use crate::render::{CameraSpec, ImageFormat, encode_image, encode_mp4, to_rgb8};
+use crate::camera::CameraSpec;
+use crate::image_formats::{ImageFormat, encode_image, encode_mp4, to_rgb8};
 use crate::service::{PathRequest, ViewRequest};
-use crate::{ApiError, AppState};
+use crate::{AppState, ServiceError};
 
 /// Frame rate of trajectory videos when a request does not say.
 const DEFAULT_VIDEO_FPS: f64 = 12.0;
@@ -38,7 +39,7 @@ pub async fn render(
     State(state): State<AppState>,
     Path(id): Path<String>,
     JsonBody(request): JsonBody<RenderRequest>,
-) -> Result<Response, ApiError> {
+) -> Result<Response, ServiceError> {
     let service = state.service()?.clone();
     let is_path = request.trajectory.is_some() || request.cameras.is_some();
     if !is_path {
@@ -47,7 +48,7 @@ pub async fn render(
             || request.start.is_some()
             || request.end.is_some()
         {
-            return Err(ApiError::invalid(
+            return Err(ServiceError::invalid(
                 "frames, fps, start and end describe a trajectory: add \"trajectory\" or \"cameras\"",
             ));
         }
@@ -73,18 +74,18 @@ pub async fn render(
     }
     let format = request.format.unwrap_or(ImageFormat::Mp4);
     if format != ImageFormat::Mp4 {
-        return Err(ApiError::invalid(
+        return Err(ServiceError::invalid(
             "a trajectory renders as mp4 over REST (gRPC RenderTrajectory streams PNG frames)",
         ));
     }
     if request.t.is_some() {
-        return Err(ApiError::invalid(
+        return Err(ServiceError::invalid(
             "a trajectory spans \"start\" to \"end\"; \"t\" is for a single view",
         ));
     }
     let fps = request.fps.unwrap_or(DEFAULT_VIDEO_FPS);
     if !(fps.is_finite() && fps > 0.0 && fps <= 240.0) {
-        return Err(ApiError::invalid(format!(
+        return Err(ServiceError::invalid(format!(
             "fps must be in (0, 240], got {fps}"
         )));
     }
@@ -104,7 +105,7 @@ pub async fn render(
     let encoding = service.store.encoding(&id).await?;
     let background = path.background;
     let images = service
-        .job(move |service| service.render_path_now(&encoding, &plan, background))
+        .work(move |service| service.render_path_now(&encoding, &plan, background))
         .await?;
     let (w, h) = images.first().map_or((0, 0), |i| (i.width, i.height));
     let frames: Vec<Vec<u8>> = images.iter().map(to_rgb8).collect();

@@ -15,7 +15,7 @@ use super::{
     DEFAULT_IMAGE_FPS, Intake, IntakeOptions, Media, MediaKind, SourceInfo, TimedFrame,
     check_duration, check_frame_count, check_frame_size,
 };
-use crate::ApiError;
+use crate::ServiceError;
 use crate::config::Limits;
 
 /// Largest ratio of inflated to compressed size an archive entry may claim. Image files are
@@ -28,20 +28,22 @@ pub fn read(
     kind: MediaKind,
     options: &IntakeOptions,
     limits: &Limits,
-) -> Result<Intake, ApiError> {
+) -> Result<Intake, ServiceError> {
     let files = match (kind, media) {
         (_, Media::Frames(frames)) => frames,
         (MediaKind::Zip, Media::File { data, .. }) => unzip(&data, limits)?,
         (MediaKind::Tar, Media::File { data, .. }) => untar(&data, limits)?,
         (MediaKind::Image, Media::File { data, .. }) => vec![data],
         (_, Media::File { .. }) => {
-            return Err(ApiError::UnsupportedMedia(
+            return Err(ServiceError::UnsupportedMedia(
                 "the upload is not a video, an image archive or an image".into(),
             ));
         }
     };
     if files.is_empty() {
-        return Err(ApiError::invalid("the archive holds no PNG or JPEG frames"));
+        return Err(ServiceError::invalid(
+            "the archive holds no PNG or JPEG frames",
+        ));
     }
     check_frame_count(files.len(), limits)?;
     let times = frame_times(files.len(), options)?;
@@ -51,13 +53,13 @@ pub fn read(
     let mut size = None;
     for (i, file) in files.iter().enumerate() {
         let (w, h) = dimensions(file).map_err(|e| {
-            ApiError::UnreadableMedia(format!("frame {i} is not a readable PNG or JPEG: {e}"))
+            ServiceError::UnreadableMedia(format!("frame {i} is not a readable PNG or JPEG: {e}"))
         })?;
         check_frame_size(w, h, limits)?;
         match size {
             None => size = Some((w, h)),
             Some((w0, h0)) if (w0, h0) != (w, h) => {
-                return Err(ApiError::UnreadableMedia(format!(
+                return Err(ServiceError::UnreadableMedia(format!(
                     "frames differ in size: frame 0 is {w0}x{h0}, frame {i} is {w}x{h}; \
                      every frame of a clip must have the same size"
                 )));
@@ -73,11 +75,11 @@ pub fn read(
             Ok(TimedFrame {
                 time: times[i],
                 image: decode(&files[i], limits).map_err(|e| {
-                    ApiError::UnreadableMedia(format!("frame {i} cannot be decoded: {e}"))
+                    ServiceError::UnreadableMedia(format!("frame {i} cannot be decoded: {e}"))
                 })?,
             })
         })
-        .collect::<Result<Vec<_>, ApiError>>()?;
+        .collect::<Result<Vec<_>, ServiceError>>()?;
     Ok(Intake {
         frames,
         source: SourceInfo {
@@ -92,9 +94,9 @@ pub fn read(
 }
 
 /// Times of `n` image frames: the explicit timestamps (shifted to start at 0) or `i / fps`.
-fn frame_times(n: usize, options: &IntakeOptions) -> Result<Vec<f64>, ApiError> {
+fn frame_times(n: usize, options: &IntakeOptions) -> Result<Vec<f64>, ServiceError> {
     match &options.timestamps {
-        Some(times) if times.len() != n => Err(ApiError::invalid(format!(
+        Some(times) if times.len() != n => Err(ServiceError::invalid(format!(
             "{} timestamps for {n} frames: give one per frame",
             times.len()
         ))),
@@ -116,26 +118,29 @@ fn is_frame_name(name: &str) -> bool {
             .any(|ext| lower.ends_with(ext))
 }
 
-fn unzip(data: &[u8], limits: &Limits) -> Result<Vec<Bytes>, ApiError> {
-    let mut archive = zip::ZipArchive::new(Cursor::new(data))
-        .map_err(|e| ApiError::UnreadableMedia(format!("the zip archive cannot be read: {e}")))?;
+fn unzip(data: &[u8], limits: &Limits) -> Result<Vec<Bytes>, ServiceError> {
+    let mut archive = zip::ZipArchive::new(Cursor::new(data)).map_err(|e| {
+        ServiceError::UnreadableMedia(format!("the zip archive cannot be read: {e}"))
+    })?;
     check_frame_count(archive.len(), limits)?;
     let mut entries = Vec::new();
     let mut declared = 0u64;
     for i in 0..archive.len() {
-        let entry = archive
-            .by_index_raw(i)
-            .map_err(|e| ApiError::UnreadableMedia(format!("zip entry {i} cannot be read: {e}")))?;
+        let entry = archive.by_index_raw(i).map_err(|e| {
+            ServiceError::UnreadableMedia(format!("zip entry {i} cannot be read: {e}"))
+        })?;
         let name = entry
             .name()
-            .map_err(|e| ApiError::UnreadableMedia(format!("zip entry {i} has a bad name: {e}")))?
+            .map_err(|e| {
+                ServiceError::UnreadableMedia(format!("zip entry {i} has a bad name: {e}"))
+            })?
             .into_owned();
         if entry.is_dir() || !is_frame_name(&name) {
             continue;
         }
         let (size, packed) = (entry.size(), entry.compressed_size());
         if size > packed.max(1).saturating_mul(MAX_INFLATION) && size > (1 << 20) {
-            return Err(ApiError::TooLarge(format!(
+            return Err(ServiceError::TooLarge(format!(
                 "zip entry {name} inflates {packed} bytes to {size}: refused as a decompression bomb"
             )));
         }
@@ -143,7 +148,7 @@ fn unzip(data: &[u8], limits: &Limits) -> Result<Vec<Bytes>, ApiError> {
         entries.push((name, i, size));
     }
     if declared > limits.max_archive_bytes {
-        return Err(ApiError::TooLarge(format!(
+        return Err(ServiceError::TooLarge(format!(
             "the archive expands to {declared} bytes; at most {} are accepted (C4G_MAX_ARCHIVE_MIB)",
             limits.max_archive_bytes
         )));
@@ -153,28 +158,29 @@ fn unzip(data: &[u8], limits: &Limits) -> Result<Vec<Bytes>, ApiError> {
         .into_iter()
         .map(|(name, i, size)| {
             let entry = archive.by_index(i).map_err(|e| {
-                ApiError::UnreadableMedia(format!("zip entry {name} cannot be read: {e}"))
+                ServiceError::UnreadableMedia(format!("zip entry {name} cannot be read: {e}"))
             })?;
             // The declared size bounds the read, whatever the stream inside claims.
             let mut bytes = Vec::with_capacity(size.min(1 << 26) as usize);
             entry
                 .take(size)
                 .read_to_end(&mut bytes)
-                .map_err(|e| ApiError::UnreadableMedia(format!("zip entry {name}: {e}")))?;
+                .map_err(|e| ServiceError::UnreadableMedia(format!("zip entry {name}: {e}")))?;
             Ok(Bytes::from(bytes))
         })
         .collect()
 }
 
-fn untar(data: &[u8], limits: &Limits) -> Result<Vec<Bytes>, ApiError> {
+fn untar(data: &[u8], limits: &Limits) -> Result<Vec<Bytes>, ServiceError> {
     let mut archive = tar::Archive::new(Cursor::new(data));
-    let entries = archive
-        .entries()
-        .map_err(|e| ApiError::UnreadableMedia(format!("the tar archive cannot be read: {e}")))?;
+    let entries = archive.entries().map_err(|e| {
+        ServiceError::UnreadableMedia(format!("the tar archive cannot be read: {e}"))
+    })?;
     let mut frames = Vec::new();
     for entry in entries {
-        let mut entry = entry
-            .map_err(|e| ApiError::UnreadableMedia(format!("a tar entry cannot be read: {e}")))?;
+        let mut entry = entry.map_err(|e| {
+            ServiceError::UnreadableMedia(format!("a tar entry cannot be read: {e}"))
+        })?;
         let name = entry
             .path()
             .map(|p| p.to_string_lossy().into_owned())
@@ -187,7 +193,7 @@ fn untar(data: &[u8], limits: &Limits) -> Result<Vec<Bytes>, ApiError> {
         let mut bytes = Vec::new();
         entry
             .read_to_end(&mut bytes)
-            .map_err(|e| ApiError::UnreadableMedia(format!("tar entry {name}: {e}")))?;
+            .map_err(|e| ServiceError::UnreadableMedia(format!("tar entry {name}: {e}")))?;
         frames.push((name, Bytes::from(bytes)));
     }
     frames.sort_by(|a, b| a.0.cmp(&b.0));

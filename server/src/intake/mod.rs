@@ -24,7 +24,7 @@ use image::RgbImage;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::ApiError;
+use crate::ServiceError;
 use crate::config::Limits;
 pub use sniff::MediaKind;
 
@@ -174,10 +174,10 @@ pub async fn read(
     options: &IntakeOptions,
     limits: &Limits,
     tools: &IntakeTools,
-) -> Result<Intake, ApiError> {
+) -> Result<Intake, ServiceError> {
     validate_options(options, limits)?;
     if media.is_empty() {
-        return Err(ApiError::invalid(
+        return Err(ServiceError::invalid(
             "the upload is empty: send a video file, an image archive (zip, tar) or image frames",
         ));
     }
@@ -196,12 +196,12 @@ pub async fn read(
             let (options, limits) = (options.clone(), limits.clone());
             tokio::task::spawn_blocking(move || images::read(media, kind, &options, &limits))
                 .await
-                .map_err(|e| ApiError::Internal(format!("image intake panicked: {e}")))?
+                .map_err(|e| ServiceError::Internal(format!("image intake panicked: {e}")))?
         }
     }
 }
 
-fn validate_options(options: &IntakeOptions, limits: &Limits) -> Result<(), ApiError> {
+fn validate_options(options: &IntakeOptions, limits: &Limits) -> Result<(), ServiceError> {
     for (name, value) in [
         ("fps", options.fps),
         ("start", options.start),
@@ -210,7 +210,7 @@ fn validate_options(options: &IntakeOptions, limits: &Limits) -> Result<(), ApiE
         if let Some(v) = value
             && !v.is_finite()
         {
-            return Err(ApiError::invalid(format!(
+            return Err(ServiceError::invalid(format!(
                 "{name} must be a finite number, got {v}"
             )));
         }
@@ -218,51 +218,53 @@ fn validate_options(options: &IntakeOptions, limits: &Limits) -> Result<(), ApiE
     if let Some(fps) = options.fps
         && fps <= 0.0
     {
-        return Err(ApiError::invalid(format!(
+        return Err(ServiceError::invalid(format!(
             "fps must be positive, got {fps}"
         )));
     }
     if let (Some(start), Some(end)) = (options.start, options.end)
         && start > end
     {
-        return Err(ApiError::invalid(format!(
+        return Err(ServiceError::invalid(format!(
             "the window start {start} is after its end {end}"
         )));
     }
     if let Some(n) = options.max_frames
         && (n == 0 || n > limits.max_context_frames)
     {
-        return Err(ApiError::invalid(format!(
+        return Err(ServiceError::invalid(format!(
             "max_frames must be between 1 and {} (C4G_MAX_CONTEXT_FRAMES), got {n}",
             limits.max_context_frames
         )));
     }
     if options.stride == Some(0) {
-        return Err(ApiError::invalid("stride must be at least 1"));
+        return Err(ServiceError::invalid("stride must be at least 1"));
     }
     if let Some(times) = &options.timestamps {
         if let Some(t) = times.iter().find(|t| !t.is_finite()) {
-            return Err(ApiError::invalid(format!(
+            return Err(ServiceError::invalid(format!(
                 "timestamps must be finite, got {t}"
             )));
         }
         if times.windows(2).any(|w| w[0] >= w[1]) {
-            return Err(ApiError::invalid("timestamps must be strictly increasing"));
+            return Err(ServiceError::invalid(
+                "timestamps must be strictly increasing",
+            ));
         }
     }
     Ok(())
 }
 
 /// Frame-size checks shared by videos and images.
-fn check_frame_size(width: u32, height: u32, limits: &Limits) -> Result<(), ApiError> {
+fn check_frame_size(width: u32, height: u32, limits: &Limits) -> Result<(), ServiceError> {
     if width > limits.max_side || height > limits.max_side {
-        return Err(ApiError::TooLarge(format!(
+        return Err(ServiceError::TooLarge(format!(
             "frames are {width}x{height}; the largest side allowed is {} pixels (C4G_MAX_SIDE)",
             limits.max_side
         )));
     }
     if width < limits.min_side || height < limits.min_side {
-        return Err(ApiError::UnreadableMedia(format!(
+        return Err(ServiceError::UnreadableMedia(format!(
             "frames are {width}x{height}; both sides must be at least {} pixels (C4G_MIN_SIDE)",
             limits.min_side
         )));
@@ -270,9 +272,9 @@ fn check_frame_size(width: u32, height: u32, limits: &Limits) -> Result<(), ApiE
     Ok(())
 }
 
-fn check_frame_count(frames: usize, limits: &Limits) -> Result<(), ApiError> {
+fn check_frame_count(frames: usize, limits: &Limits) -> Result<(), ServiceError> {
     if frames > limits.max_source_frames {
-        return Err(ApiError::TooLarge(format!(
+        return Err(ServiceError::TooLarge(format!(
             "the clip has {frames} frames; at most {} are accepted (C4G_MAX_SOURCE_FRAMES)",
             limits.max_source_frames
         )));
@@ -280,9 +282,9 @@ fn check_frame_count(frames: usize, limits: &Limits) -> Result<(), ApiError> {
     Ok(())
 }
 
-fn check_duration(duration: f64, limits: &Limits) -> Result<(), ApiError> {
+fn check_duration(duration: f64, limits: &Limits) -> Result<(), ServiceError> {
     if duration > limits.max_duration_s {
-        return Err(ApiError::TooLarge(format!(
+        return Err(ServiceError::TooLarge(format!(
             "the clip lasts {duration:.1} s; at most {} s are accepted (C4G_MAX_DURATION_S)",
             limits.max_duration_s
         )));

@@ -2,7 +2,7 @@
 //! `stride`-th or `max_frames` spread evenly (first and last always included).
 
 use super::IntakeOptions;
-use crate::ApiError;
+use crate::ServiceError;
 use crate::config::Limits;
 
 /// Indices into `times` (increasing) of the context frames `options` ask for.
@@ -10,7 +10,7 @@ pub fn select(
     times: &[f64],
     options: &IntakeOptions,
     limits: &Limits,
-) -> Result<Vec<usize>, ApiError> {
+) -> Result<Vec<usize>, ServiceError> {
     let start = options.start.unwrap_or(f64::NEG_INFINITY);
     let end = options.end.unwrap_or(f64::INFINITY);
     let window: Vec<usize> = (0..times.len())
@@ -18,7 +18,7 @@ pub fn select(
         .collect();
     if window.is_empty() {
         let last = times.last().copied().unwrap_or(0.0);
-        return Err(ApiError::invalid(format!(
+        return Err(ServiceError::invalid(format!(
             "no frames in the window [{}, {}]: the clip's frames span [0, {last:.3}] s",
             options.start.unwrap_or(0.0),
             options.end.unwrap_or(last),
@@ -28,7 +28,7 @@ pub fn select(
         let picked: Vec<usize> = window.iter().copied().step_by(stride.max(1)).collect();
         let cap = options.max_frames.unwrap_or(limits.max_context_frames);
         if picked.len() > cap {
-            return Err(ApiError::invalid(format!(
+            return Err(ServiceError::invalid(format!(
                 "stride {stride} picks {} frames; at most {cap} context frames are allowed: \
                  raise the stride or narrow the window",
                 picked.len()

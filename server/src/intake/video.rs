@@ -21,7 +21,7 @@ use super::{
     Intake, IntakeOptions, IntakeTools, MediaKind, SourceInfo, TimedFrame, check_duration,
     check_frame_count, check_frame_size,
 };
-use crate::ApiError;
+use crate::ServiceError;
 use crate::config::Limits;
 
 /// Reads a video upload.
@@ -31,14 +31,14 @@ pub async fn read(
     options: &IntakeOptions,
     limits: &Limits,
     tools: &IntakeTools,
-) -> Result<Intake, ApiError> {
+) -> Result<Intake, ServiceError> {
     std::fs::create_dir_all(&tools.scratch)
-        .map_err(|e| ApiError::Internal(format!("cannot create the scratch directory: {e}")))?;
+        .map_err(|e| ServiceError::Internal(format!("cannot create the scratch directory: {e}")))?;
     let file = tempfile::NamedTempFile::new_in(&tools.scratch)
-        .map_err(|e| ApiError::Internal(format!("cannot create a scratch file: {e}")))?;
+        .map_err(|e| ServiceError::Internal(format!("cannot create a scratch file: {e}")))?;
     tokio::fs::write(file.path(), &data)
         .await
-        .map_err(|e| ApiError::Internal(format!("cannot write a scratch file: {e}")))?;
+        .map_err(|e| ServiceError::Internal(format!("cannot write a scratch file: {e}")))?;
     let deadline = tokio::time::Instant::now() + limits.intake_timeout;
     let work = async {
         let stream = probe(file.path(), kind, tools).await?;
@@ -52,7 +52,7 @@ pub async fn read(
         }
         let times = frame_times(file.path(), tools, limits).await?;
         if times.is_empty() {
-            return Err(ApiError::UnreadableMedia(
+            return Err(ServiceError::UnreadableMedia(
                 "the video has no decodable frames (truncated or corrupt?)".into(),
             ));
         }
@@ -88,7 +88,7 @@ pub async fn read(
     };
     match tokio::time::timeout_at(deadline, work).await {
         Ok(result) => result,
-        Err(_) => Err(ApiError::UnreadableMedia(format!(
+        Err(_) => Err(ServiceError::UnreadableMedia(format!(
             "reading the video took longer than {} s (C4G_INTAKE_TIMEOUT_S)",
             limits.intake_timeout.as_secs()
         ))),
@@ -147,7 +147,7 @@ impl Stream {
     }
 }
 
-async fn probe(path: &Path, kind: MediaKind, tools: &IntakeTools) -> Result<Stream, ApiError> {
+async fn probe(path: &Path, kind: MediaKind, tools: &IntakeTools) -> Result<Stream, ServiceError> {
     let output = Command::new(&tools.ffprobe)
         .args(["-v", "error", "-select_streams", "v:0", "-show_entries"])
         .arg("stream=width,height,nb_frames,avg_frame_rate,duration:stream_side_data=rotation")
@@ -160,11 +160,11 @@ async fn probe(path: &Path, kind: MediaKind, tools: &IntakeTools) -> Result<Stre
         .map_err(|e| tool_missing(&tools.ffprobe, e))?;
     let unreadable = |detail: String| {
         if kind == MediaKind::Video {
-            ApiError::UnreadableMedia(format!(
+            ServiceError::UnreadableMedia(format!(
                 "the file looks like a video but cannot be read (truncated or corrupt?): {detail}"
             ))
         } else {
-            ApiError::UnsupportedMedia(format!(
+            ServiceError::UnsupportedMedia(format!(
                 "the upload is not a video FFmpeg can read, an image archive (zip, tar) or an \
                  image: {detail}"
             ))
@@ -174,7 +174,7 @@ async fn probe(path: &Path, kind: MediaKind, tools: &IntakeTools) -> Result<Stre
         return Err(unreadable(first_line(&output.stderr)));
     }
     let probe: Probe = serde_json::from_slice(&output.stdout)
-        .map_err(|e| ApiError::Internal(format!("unexpected ffprobe output: {e}")))?;
+        .map_err(|e| ServiceError::Internal(format!("unexpected ffprobe output: {e}")))?;
     probe
         .streams
         .into_iter()
@@ -190,7 +190,7 @@ async fn frame_times(
     path: &Path,
     tools: &IntakeTools,
     limits: &Limits,
-) -> Result<Vec<f64>, ApiError> {
+) -> Result<Vec<f64>, ServiceError> {
     let mut child = Command::new(&tools.ffprobe)
         .args(["-v", "error", "-select_streams", "v:0", "-show_entries"])
         .arg("packet=pts_time")
@@ -205,13 +205,13 @@ async fn frame_times(
     let stdout = child
         .stdout
         .take()
-        .ok_or_else(|| ApiError::Internal("ffprobe has no stdout".into()))?;
+        .ok_or_else(|| ServiceError::Internal("ffprobe has no stdout".into()))?;
     let mut lines = BufReader::new(stdout).lines();
     let mut raw: Vec<Option<f64>> = Vec::new();
     while let Some(line) = lines
         .next_line()
         .await
-        .map_err(|e| ApiError::Internal(format!("reading ffprobe: {e}")))?
+        .map_err(|e| ServiceError::Internal(format!("reading ffprobe: {e}")))?
     {
         // One frame a line; side data can add empty lines.
         let field = line.split(',').next().unwrap_or("").trim();
@@ -224,9 +224,9 @@ async fn frame_times(
     let status = child
         .wait()
         .await
-        .map_err(|e| ApiError::Internal(format!("waiting for ffprobe: {e}")))?;
+        .map_err(|e| ServiceError::Internal(format!("waiting for ffprobe: {e}")))?;
     if !status.success() && raw.is_empty() {
-        return Err(ApiError::UnreadableMedia(
+        return Err(ServiceError::UnreadableMedia(
             "the video's frames cannot be read (truncated or corrupt?)".into(),
         ));
     }
@@ -272,7 +272,7 @@ async fn decode_frames(
     width: u32,
     height: u32,
     chosen: &[usize],
-) -> Result<Vec<RgbImage>, ApiError> {
+) -> Result<Vec<RgbImage>, ServiceError> {
     // Only the chosen frames are converted to RGB and piped: `select` drops the rest right
     // after decoding, and decoding stops after the last one.
     let select: Vec<String> = chosen.iter().map(|i| format!("eq(n\\,{i})")).collect();
@@ -293,7 +293,7 @@ async fn decode_frames(
     let mut stdout = child
         .stdout
         .take()
-        .ok_or_else(|| ApiError::Internal("ffmpeg has no stdout".into()))?;
+        .ok_or_else(|| ServiceError::Internal("ffmpeg has no stdout".into()))?;
     let frame_bytes = width as usize * height as usize * 3;
     let mut buffer = vec![0u8; frame_bytes];
     let mut images = Vec::with_capacity(chosen.len());
@@ -301,19 +301,19 @@ async fn decode_frames(
         match stdout.read_exact(&mut buffer).await {
             Ok(_) => {}
             Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => break,
-            Err(e) => return Err(ApiError::Internal(format!("reading ffmpeg: {e}"))),
+            Err(e) => return Err(ServiceError::Internal(format!("reading ffmpeg: {e}"))),
         }
         let image = RgbImage::from_raw(width, height, buffer.clone())
-            .ok_or_else(|| ApiError::Internal("a decoded frame has the wrong size".into()))?;
+            .ok_or_else(|| ServiceError::Internal("a decoded frame has the wrong size".into()))?;
         images.push(image);
     }
     drop(stdout);
     let output = child
         .wait_with_output()
         .await
-        .map_err(|e| ApiError::Internal(format!("waiting for ffmpeg: {e}")))?;
+        .map_err(|e| ServiceError::Internal(format!("waiting for ffmpeg: {e}")))?;
     if images.len() < chosen.len() {
-        return Err(ApiError::UnreadableMedia(format!(
+        return Err(ServiceError::UnreadableMedia(format!(
             "the video ends before its frame {} (truncated or corrupt?){}",
             chosen.get(images.len()).copied().unwrap_or(0),
             match first_line(&output.stderr) {
@@ -325,8 +325,8 @@ async fn decode_frames(
     Ok(images)
 }
 
-fn tool_missing(tool: &Path, e: std::io::Error) -> ApiError {
-    ApiError::Internal(format!(
+fn tool_missing(tool: &Path, e: std::io::Error) -> ServiceError {
+    ServiceError::Internal(format!(
         "cannot run {}: {e} (install FFmpeg, or point C4G_FFMPEG at it)",
         tool.display()
     ))

@@ -1,0 +1,196 @@
+//! Stage 3, blending: a tile's front-to-back compositing of its depth-ordered splats into a
+//! tile-sized accumulator, and the rows of tiles that write those accumulations (over the
+//! background) into the image's planes. Apart from projection and binning because it is the
+//! per-pixel f32 loop, where the forward model's alpha and transmittance rules live.
+
+use super::TILE;
+use super::bin::TileGrid;
+use super::project::Splat;
+use crate::raster::{ALPHA_MAX, ALPHA_MIN, Image, SIGMA_EXTENT, TRANSMITTANCE_MIN};
+
+/// The planes of one row of tiles (`TILE` pixel rows), for one task to write.
+pub(super) struct TileRow<'a> {
+    pub(super) index: usize,
+    rgb: &'a mut [f32],
+    alpha: &'a mut [f32],
+    depth: &'a mut [f32],
+    expected_depth: &'a mut [f32],
+    features: Option<(usize, &'a mut [f32])>,
+}
+
+impl<'a> TileRow<'a> {
+    pub(super) fn split(grid: &TileGrid, image: &'a mut Image) -> Vec<Self> {
+        let px = grid.width as usize * TILE as usize;
+        let mut features: Vec<Option<(usize, &mut [f32])>> = match &mut image.features {
+            Some(f) => {
+                let c = f.channels;
+                f.values.chunks_mut(px * c).map(|v| Some((c, v))).collect()
+            }
+            None => (0..grid.tiles_y).map(|_| None).collect(),
+        };
+        image
+            .rgb
+            .chunks_mut(px * 3)
+            .zip(image.alpha.chunks_mut(px))
+            .zip(image.depth.chunks_mut(px))
+            .zip(image.expected_depth.chunks_mut(px))
+            .zip(features.drain(..))
+            .enumerate()
+            .map(
+                |(index, ((((rgb, alpha), depth), expected_depth), features))| Self {
+                    index,
+                    rgb,
+                    alpha,
+                    depth,
+                    expected_depth,
+                    features,
+                },
+            )
+            .collect()
+    }
+
+    /// Writes tile `t` (in this row) from its accumulations, the background under what remains.
+    pub(super) fn write(&mut self, grid: &TileGrid, t: usize, acc: &TileAcc, background: [f32; 3]) {
+        let (x0, _, w, h) = grid.rect(t);
+        let width = grid.width as usize;
+        for ly in 0..h as usize {
+            for lx in 0..w as usize {
+                let p = ly * TILE as usize + lx;
+                let q = ly * width + x0 as usize + lx;
+                let transmittance = acc.transmittance[p];
+                for ((out, colour), b) in self.rgb[3 * q..3 * q + 3]
+                    .iter_mut()
+                    .zip(acc.rgb[p])
+                    .zip(background)
+                {
+                    *out = colour + transmittance * b;
+                }
+                let alpha = 1.0 - transmittance;
+                self.alpha[q] = alpha;
+                self.depth[q] = acc.depth[p];
+                self.expected_depth[q] = if alpha > 0.0 {
+                    acc.depth[p] / alpha
+                } else {
+                    0.0
+                };
+                if let Some((c, values)) = &mut self.features {
+                    values[q * *c..(q + 1) * *c]
+                        .copy_from_slice(&acc.features[p * *c..(p + 1) * *c]);
+                }
+            }
+        }
+    }
+}
+
+/// Pixels in a tile.
+const TILE_PIXELS: usize = (TILE * TILE) as usize;
+
+/// The accumulations of one tile, pixel `(x, y)` of the tile at `y · TILE + x` (edge tiles use
+/// only part of it).
+pub(super) struct TileAcc {
+    rgb: [[f32; 3]; TILE_PIXELS],
+    transmittance: [f32; TILE_PIXELS],
+    depth: [f32; TILE_PIXELS],
+    features: Vec<f32>,
+}
+
+impl TileAcc {
+    pub(super) fn new(channels: usize) -> Self {
+        Self {
+            rgb: [[0.0; 3]; TILE_PIXELS],
+            transmittance: [1.0; TILE_PIXELS],
+            depth: [0.0; TILE_PIXELS],
+            features: vec![0.0; TILE_PIXELS * channels],
+        }
+    }
+
+    pub(super) fn clear(&mut self) {
+        self.rgb = [[0.0; 3]; TILE_PIXELS];
+        self.transmittance = [1.0; TILE_PIXELS];
+        self.depth = [0.0; TILE_PIXELS];
+        self.features.fill(0.0);
+    }
+}
+
+/// Composites `list` (indices into `splats`, front to back) over the pixels of tile `t`.
+pub(super) fn blend_tile(
+    out: &mut TileAcc,
+    grid: &TileGrid,
+    t: usize,
+    list: &[u32],
+    splats: &[Splat],
+    features: Option<(usize, &[f32])>,
+) {
+    let (x0, y0, w, h) = grid.rect(t);
+    let channels = features.map_or(0, |(c, _)| c);
+    let mut done = [false; TILE_PIXELS];
+    let mut live = (w * h) as usize;
+    let cut = SIGMA_EXTENT * SIGMA_EXTENT;
+    for &index in list {
+        let s = &splats[index as usize];
+        let feature_row = features.map(|(c, values)| {
+            let start = s.index as usize * c;
+            &values[start..start + c]
+        });
+        // The rows' culls are exact-math bounds of `d² ≤ reach2`, widened for f32 rounding;
+        // the test below decides.
+        let reach2 = s.reach2 * 1.001 + 1e-3;
+        for py in s.y0.max(y0)..=s.y1.min(y0 + h - 1) {
+            let dy = (py - s.y0) as f32 + 0.5 - s.v;
+            let row_d2 = dy * dy * s.inv_syy;
+            if row_d2 > reach2 {
+                continue;
+            }
+            // On this row d² = a·(dx − centre)² + row_d2: within `half` of `centre`.
+            let centre = s.k * dy;
+            let half = ((reach2 - row_d2) / s.a).sqrt();
+            // Offsets from the box corner of the first and last pixel centres within reach
+            // (infinite when `a` underflows for a huge splat: then the whole box row).
+            let first = (centre - half + s.u - 0.5).floor() - 1.0;
+            let last = (centre + half + s.u - 0.5).ceil() + 1.0;
+            let lo = s.x0 + first.max(0.0).min((s.x1 - s.x0) as f32) as u32;
+            let hi = s.x0 + last.max(0.0).min((s.x1 - s.x0) as f32) as u32;
+            let row = ((py - y0) * TILE) as usize;
+            for px in lo.max(x0)..=hi.min(x0 + w - 1) {
+                // Below TILE_PIXELS by construction; the mask lets the compiler see it.
+                let p = (row + (px - x0) as usize) & (TILE_PIXELS - 1);
+                if done[p] {
+                    continue;
+                }
+                let e = (px - s.x0) as f32 + 0.5 - s.u - centre;
+                let d2 = s.a * e * e + row_d2;
+                if d2 > cut {
+                    continue;
+                }
+                let alpha = (s.opacity * (-0.5 * d2).exp()).min(ALPHA_MAX);
+                if alpha < ALPHA_MIN {
+                    continue;
+                }
+                let t_now = out.transmittance[p];
+                let t_next = t_now * (1.0 - alpha);
+                if t_next < TRANSMITTANCE_MIN {
+                    done[p] = true;
+                    live -= 1;
+                    continue;
+                }
+                let weight = alpha * t_now;
+                for (acc, c) in out.rgb[p].iter_mut().zip(s.color) {
+                    *acc += weight * c;
+                }
+                out.depth[p] += weight * s.depth;
+                if let Some(row) = feature_row {
+                    for (acc, f) in out.features[p * channels..(p + 1) * channels]
+                        .iter_mut()
+                        .zip(row)
+                    {
+                        *acc += weight * f;
+                    }
+                }
+                out.transmittance[p] = t_next;
+            }
+        }
+        if live == 0 {
+            break;
+        }
+    }
+}

@@ -1,0 +1,188 @@
+//! Stage 1, projection: each Gaussian, in f64, to the `Splat` the pixels see (pixel centre, a
+//! cancellation-free form of its 2D covariance, depth, a conservative pixel box), or to nothing
+//! when the forward model skips it or it reaches no pixel. Apart from binning and blending
+//! because it is the only stage that reads the camera and the Gaussians' parameters.
+
+use glam::{DMat3, DQuat, DVec3};
+
+use super::TILE;
+use crate::raster::{ALPHA_MIN, EPS2D, FOV_CLAMP, RenderOptions, SIGMA_EXTENT};
+use crate::{Camera, GaussianSet};
+
+/// A Gaussian as the pixels see it.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Splat {
+    /// Pixel coordinates of the centre relative to the box corner `(x0, y0)`: pixel offsets are
+    /// then exact in f32 however far from the image origin the box is.
+    pub(super) u: f32,
+    pub(super) v: f32,
+    /// The Mahalanobis distance in the form `d² = a·(dx − k·dy)² + dy²·inv_syy`, a sum of two
+    /// non-negative terms (no cancellation however thin the ellipse): with Σ2D =
+    /// `[[sxx, sxy], [sxy, syy]]`, `a = syy / det`, `k = sxy / syy`, `inv_syy = 1 / syy`.
+    pub(super) a: f32,
+    pub(super) k: f32,
+    pub(super) inv_syy: f32,
+    /// Squared reach: `d²` beyond this cannot contribute (3 sigma, or less for faint splats).
+    pub(super) reach2: f32,
+    pub(super) opacity: f32,
+    pub(super) depth: f32,
+    pub(super) color: [f32; 3],
+    /// Index in the Gaussian set.
+    pub(super) index: u32,
+    /// Inclusive pixel box, inside the image.
+    pub(super) x0: u32,
+    pub(super) y0: u32,
+    pub(super) x1: u32,
+    pub(super) y1: u32,
+}
+
+impl Splat {
+    pub(super) fn tiles(&self) -> (u32, u32, u32, u32) {
+        (
+            self.x0 / TILE,
+            self.y0 / TILE,
+            self.x1 / TILE,
+            self.y1 / TILE,
+        )
+    }
+}
+
+/// What projection needs of the camera, in f64.
+pub(super) struct View {
+    rotation: DMat3,
+    translation: DVec3,
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    lim_x: f64,
+    lim_y: f64,
+    near: f64,
+    far: f64,
+    pub(super) width: u32,
+    pub(super) height: u32,
+}
+
+impl View {
+    pub(super) fn new(camera: &Camera, options: &RenderOptions) -> Self {
+        let pose = camera.world_to_camera();
+        let k = camera.intrinsics();
+        let (fx, fy) = (f64::from(k.fx), f64::from(k.fy));
+        let fov_clamp = f64::from(FOV_CLAMP);
+        Self {
+            rotation: DMat3::from_cols(
+                pose.matrix3.x_axis.as_dvec3(),
+                pose.matrix3.y_axis.as_dvec3(),
+                pose.matrix3.z_axis.as_dvec3(),
+            ),
+            translation: pose.translation.as_dvec3(),
+            fx,
+            fy,
+            cx: f64::from(k.cx),
+            cy: f64::from(k.cy),
+            lim_x: fov_clamp * f64::from(k.width) / (2.0 * fx),
+            lim_y: fov_clamp * f64::from(k.height) / (2.0 * fy),
+            near: f64::from(options.near),
+            far: f64::from(options.far),
+            width: k.width,
+            height: k.height,
+        }
+    }
+
+    /// The splat of Gaussian `i`, or `None` when it is skipped or reaches no pixel.
+    pub(super) fn project(&self, set: &GaussianSet, i: usize) -> Option<Splat> {
+        let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
+        let (p, s, q, o, c) = (
+            &set.positions()[i],
+            &set.scales()[i],
+            &set.rotations()[i],
+            set.opacities()[i],
+            &set.colors()[i],
+        );
+        let features_ok = set.features().and_then(|f| f.row(i)).is_none_or(finite);
+        if !(finite(p) && finite(s) && finite(q) && o.is_finite() && finite(c) && features_ok) {
+            return None;
+        }
+        // Alpha never exceeds the opacity: a Gaussian this faint reaches no pixel.
+        if o < ALPHA_MIN {
+            return None;
+        }
+        let q = DQuat::from_xyzw(q[1].into(), q[2].into(), q[3].into(), q[0].into());
+        let norm = q.length();
+        if norm == 0.0 {
+            return None;
+        }
+        let p_cam =
+            self.rotation * DVec3::new(p[0].into(), p[1].into(), p[2].into()) + self.translation;
+        let z = p_cam.z;
+        if !(z >= self.near && z <= self.far) {
+            return None;
+        }
+
+        // EWA: Σ2D = M Mᵀ + EPS2D·I with M = J W R S (2×3). Through M the covariance is positive
+        // semi-definite by construction, and its determinant is |m0 × m1|² (Cauchy–Binet) with no
+        // cancellation, even for a zero scale or a needle seen end on.
+        let tx = (p_cam.x / z).clamp(-self.lim_x, self.lim_x) * z;
+        let ty = (p_cam.y / z).clamp(-self.lim_y, self.lim_y) * z;
+        let j0 = DVec3::new(self.fx / z, 0.0, -self.fx * tx / (z * z));
+        let j1 = DVec3::new(0.0, self.fy / z, -self.fy * ty / (z * z));
+        let rs = DMat3::from_quat(q / norm)
+            * DMat3::from_diagonal(DVec3::new(s[0].into(), s[1].into(), s[2].into()));
+        let wrs = self.rotation * rs;
+        // Row r of J·W·R·S is (J·W·R·S)ᵀ's column r = (W R S)ᵀ j_r.
+        let m0 = wrs.transpose() * j0;
+        let m1 = wrs.transpose() * j1;
+        let eps = f64::from(EPS2D);
+        let (mxx, myy) = (m0.length_squared(), m1.length_squared());
+        let sxx = mxx + eps;
+        let sxy = m0.dot(m1);
+        let syy = myy + eps;
+        let det = m0.cross(m1).length_squared() + eps * (mxx + myy) + eps * eps;
+        if !(det.is_finite() && det > 0.0) {
+            return None;
+        }
+        // syy ≥ EPS2D and the Schur complement det / syy ≥ EPS2D: all three are finite.
+        let (a, k, inv_syy) = ((syy / det) as f32, (sxy / syy) as f32, (1.0 / syy) as f32);
+        if !(a.is_finite() && k.is_finite() && inv_syy.is_finite()) {
+            return None;
+        }
+
+        let u = self.fx * p_cam.x / z + self.cx;
+        let v = self.fy * p_cam.y / z + self.cy;
+        // Pixels can be reached only where d² ≤ 9 and opacity · exp(-d²/2) ≥ 1/255; along x the
+        // ellipse d² ≤ r² spans u ± r·√Σxx (and likewise along y).
+        let reach2 = f64::from(SIGMA_EXTENT * SIGMA_EXTENT)
+            .min(2.0 * (f64::from(o) / f64::from(ALPHA_MIN)).ln());
+        let extent = reach2.sqrt();
+        let (x0, x1) = pixel_span(u, extent * sxx.sqrt(), self.width)?;
+        let (y0, y1) = pixel_span(v, extent * syy.sqrt(), self.height)?;
+        Some(Splat {
+            u: (u - f64::from(x0)) as f32,
+            v: (v - f64::from(y0)) as f32,
+            a,
+            k,
+            inv_syy,
+            reach2: reach2 as f32,
+            opacity: o,
+            depth: z as f32,
+            color: *c,
+            index: i as u32,
+            x0,
+            y0,
+            x1,
+            y1,
+        })
+    }
+}
+
+/// Pixels `i` (inclusive range, inside `0..size`) whose centre `i + 0.5` may lie within `radius` of
+/// `centre`, with a pixel of slack for the f32 test that decides; `None` when there are none.
+fn pixel_span(centre: f64, radius: f64, size: u32) -> Option<(u32, u32)> {
+    let lo = (centre - radius - 0.5).floor() - 1.0;
+    let hi = (centre + radius - 0.5).ceil() + 1.0;
+    if !(lo.is_finite() && hi.is_finite()) || hi < 0.0 || lo > f64::from(size - 1) {
+        return None;
+    }
+    // Both are within [0, size - 1] after clamping, so the casts are exact.
+    Some((lo.max(0.0) as u32, hi.min(f64::from(size - 1)) as u32))
+}

@@ -1,0 +1,69 @@
+//! The rasterizer the service renders with: the CPU one, or wgpu's when built with the `gpu`
+//! feature and asked for (or, with `auto`, when a hardware GPU is present).
+
+use c4g_renderer::{Camera, CpuRasterizer, GaussianSet, Image, Rasterizer, RenderOptions};
+
+use crate::ServiceError;
+use crate::config::RendererArg;
+
+/// The rasterizer the service renders with.
+pub struct Renderer {
+    inner: Box<dyn Rasterizer + Send + Sync>,
+    name: String,
+}
+
+impl Renderer {
+    /// The rasterizer `choice` asks for. `auto` takes wgpu only on a hardware GPU: on a CPU,
+    /// the CPU rasterizer is faster than wgpu on Mesa's software Vulkan.
+    pub fn new(choice: RendererArg) -> Result<Self, String> {
+        #[cfg(feature = "gpu")]
+        {
+            use c4g_renderer::GpuRasterizer;
+            match (choice, GpuRasterizer::new()) {
+                (RendererArg::Gpu, Ok(gpu)) => return Ok(Self::gpu(gpu)),
+                (RendererArg::Gpu, Err(e)) => return Err(format!("no wgpu adapter: {e}")),
+                (RendererArg::Auto, Ok(gpu)) if !gpu.adapter().software => {
+                    return Ok(Self::gpu(gpu));
+                }
+                _ => {}
+            }
+        }
+        #[cfg(not(feature = "gpu"))]
+        if choice == RendererArg::Gpu {
+            return Err("`--renderer gpu` needs c4g-server built with `--features gpu`".into());
+        }
+        Ok(Self {
+            inner: Box::new(CpuRasterizer::new()),
+            name: "cpu".into(),
+        })
+    }
+
+    #[cfg(feature = "gpu")]
+    fn gpu(gpu: c4g_renderer::GpuRasterizer) -> Self {
+        let name = format!("wgpu ({})", gpu.adapter().name);
+        Self {
+            inner: Box::new(gpu),
+            name,
+        }
+    }
+
+    /// Which rasterizer this is, for `/v1/models` and logs.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Renders one view.
+    pub fn render(
+        &self,
+        set: &GaussianSet,
+        camera: &Camera,
+        background: [f32; 3],
+    ) -> Result<Image, ServiceError> {
+        let options = RenderOptions {
+            background,
+            features: false,
+            ..RenderOptions::default()
+        };
+        Ok(self.inner.render(set, camera, &options)?)
+    }
+}

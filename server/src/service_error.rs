@@ -1,0 +1,190 @@
+//! What went wrong, in the service's own words: the one error that the core (`service`, `intake`,
+//! `store`, `jobs`, `refine`) returns, and the kind a client switches on.
+//!
+//! Nothing here knows about HTTP or gRPC: `error` turns a [`ServiceErrorKind`] into a status
+//! code for each transport, in one place. Engine and renderer errors keep their own message and
+//! are classified here, exhaustively: a new variant in either crate does not compile until it is
+//! given a kind.
+
+use std::time::Duration;
+
+use c4g_engine::{EngineError, ErrorKind as EngineErrorKind};
+use c4g_renderer::RendererError;
+
+/// An error answered to a client. Messages say what happened and what to do about it.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// The model is still loading.
+    #[error("the model is still loading; retry shortly")]
+    NotReady,
+    /// The request is malformed or asks for something impossible.
+    #[error("{0}")]
+    InvalidInput(String),
+    /// Missing or wrong API key.
+    #[error("missing or wrong API key: send `Authorization: Bearer <key>`")]
+    Unauthorized,
+    /// Something the request names does not exist.
+    #[error("{0}")]
+    NotFound(String),
+    /// Over a configured limit.
+    #[error("{0}")]
+    TooLarge(String),
+    /// Media of a kind the service does not read.
+    #[error("{0}")]
+    UnsupportedMedia(String),
+    /// Media of a known kind that cannot be read (truncated, corrupt, unusable frames).
+    #[error("{0}")]
+    UnreadableMedia(String),
+    /// Every encode slot is taken.
+    #[error("every encode slot is busy; retry in {}s", retry_after.as_secs())]
+    Busy {
+        /// When to try again.
+        retry_after: Duration,
+    },
+    /// The queue of decode and render work is full.
+    #[error("the server is overloaded; retry in {}s", retry_after.as_secs())]
+    Overloaded {
+        /// When to try again.
+        retry_after: Duration,
+    },
+    /// The server failed; the message is logged and shown.
+    #[error("internal error: {0}")]
+    Internal(String),
+    /// An engine error, classified by its kind.
+    #[error(transparent)]
+    Engine(#[from] EngineError),
+    /// A renderer error, classified by its variant.
+    #[error(transparent)]
+    Renderer(#[from] RendererError),
+}
+
+/// The kinds of [`ServiceError`], as clients see them: the JSON `kind` of a REST error and the
+/// `c4g-error-kind` metadata entry of a gRPC one ([`name`](Self::name)).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum ServiceErrorKind {
+    /// The model is still loading: retry.
+    NotReady,
+    /// The caller's request is wrong: the caller fixes it.
+    InvalidInput,
+    /// No or a wrong API key.
+    Unauthorized,
+    /// A clip, job or frame that does not exist.
+    NotFound,
+    /// Over a configured limit.
+    TooLarge,
+    /// Media of a kind the service does not read.
+    UnsupportedMedia,
+    /// Media of a known kind that cannot be read.
+    UnreadableMedia,
+    /// Well-formed, but this model package or build cannot do it.
+    Unsupported,
+    /// Every encode slot is busy: retry later.
+    Busy,
+    /// The work queue is full: retry later.
+    Overloaded,
+    /// The server (or its model package) failed: the operator fixes it.
+    Internal,
+}
+
+impl ServiceErrorKind {
+    /// Every kind, for tables and tests.
+    pub const ALL: [Self; 11] = [
+        Self::NotReady,
+        Self::InvalidInput,
+        Self::Unauthorized,
+        Self::NotFound,
+        Self::TooLarge,
+        Self::UnsupportedMedia,
+        Self::UnreadableMedia,
+        Self::Unsupported,
+        Self::Busy,
+        Self::Overloaded,
+        Self::Internal,
+    ];
+
+    /// The stable name clients switch on.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::NotReady => "not_ready",
+            Self::InvalidInput => "invalid_input",
+            Self::Unauthorized => "unauthorized",
+            Self::NotFound => "not_found",
+            Self::TooLarge => "too_large",
+            Self::UnsupportedMedia => "unsupported_media",
+            Self::UnreadableMedia => "unreadable_media",
+            Self::Unsupported => "unsupported",
+            Self::Busy => "busy",
+            Self::Overloaded => "overloaded",
+            Self::Internal => "internal",
+        }
+    }
+}
+
+impl ServiceError {
+    /// Shorthand for [`ServiceError::InvalidInput`].
+    pub fn invalid(message: impl Into<String>) -> Self {
+        Self::InvalidInput(message.into())
+    }
+
+    /// What kind of failure this is.
+    pub fn kind(&self) -> ServiceErrorKind {
+        use ServiceErrorKind as K;
+        match self {
+            Self::NotReady => K::NotReady,
+            Self::InvalidInput(_) => K::InvalidInput,
+            Self::Unauthorized => K::Unauthorized,
+            Self::NotFound(_) => K::NotFound,
+            Self::TooLarge(_) => K::TooLarge,
+            Self::UnsupportedMedia(_) => K::UnsupportedMedia,
+            Self::UnreadableMedia(_) => K::UnreadableMedia,
+            Self::Busy { .. } => K::Busy,
+            Self::Overloaded { .. } => K::Overloaded,
+            Self::Internal(_) => K::Internal,
+            Self::Engine(e) => engine_kind(e.kind()),
+            Self::Renderer(e) => renderer_kind(e),
+        }
+    }
+
+    /// When a client should try again, for the refusals that are about load, not the request.
+    pub fn retry_after(&self) -> Option<Duration> {
+        match self {
+            Self::Busy { retry_after } | Self::Overloaded { retry_after } => Some(*retry_after),
+            Self::NotReady => Some(Duration::from_secs(1)),
+            _ => None,
+        }
+    }
+}
+
+/// The engine's "who can fix it", as the service's kinds. A cancelled engine run cannot reach
+/// a client (only the refiner cancels), so it counts as the server's failure.
+fn engine_kind(kind: EngineErrorKind) -> ServiceErrorKind {
+    match kind {
+        EngineErrorKind::InvalidInput => ServiceErrorKind::InvalidInput,
+        EngineErrorKind::Unsupported => ServiceErrorKind::Unsupported,
+        EngineErrorKind::Package
+        | EngineErrorKind::Runtime
+        | EngineErrorKind::ModelOutput
+        | EngineErrorKind::Cancelled => ServiceErrorKind::Internal,
+    }
+}
+
+/// Renderer errors by variant: what a request's cameras, sizes or options got wrong is the
+/// caller's; a missing GPU, a thread pool or file failure, or an invalid Gaussian (which only the
+/// model can have produced: sets are validated when decoded) is the server's.
+fn renderer_kind(error: &RendererError) -> ServiceErrorKind {
+    match error {
+        RendererError::ThreadPool(_)
+        | RendererError::Io { .. }
+        | RendererError::GpuUnavailable(_)
+        | RendererError::Gpu(_)
+        | RendererError::InvalidGaussian { .. } => ServiceErrorKind::Internal,
+        RendererError::CanonicalLength { .. }
+        | RendererError::LengthMismatch { .. }
+        | RendererError::ZeroFeatureWidth
+        | RendererError::InvalidCamera(_)
+        | RendererError::InvalidRenderOptions(_)
+        | RendererError::InvalidTrajectory(_)
+        | RendererError::InvalidImage(_)
+        | RendererError::Format { .. } => ServiceErrorKind::InvalidInput,
+    }
+}
