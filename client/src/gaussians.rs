@@ -10,7 +10,7 @@ use reqwest::header::ACCEPT;
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 
-use crate::{Client, Error, wire};
+use crate::{Client, Error, Keyframes, wire};
 
 /// The Gaussians of a clip at one time.
 #[derive(Debug, Clone, PartialEq)]
@@ -107,8 +107,21 @@ impl Client {
         times: &[f64],
         precision: Precision,
     ) -> Result<Vec<GaussianFrame>, Error> {
+        self.gaussians_keyframed(clip_id, times, precision, None)
+            .await
+    }
+
+    /// [`gaussians`](Self::gaussians), with the sets between `keyframes` interpolated by the
+    /// server (`None`: every time exact).
+    pub async fn gaussians_keyframed(
+        &self,
+        clip_id: &str,
+        times: &[f64],
+        precision: Precision,
+        keyframes: Option<&Keyframes>,
+    ) -> Result<Vec<GaussianFrame>, Error> {
         let bytes = self
-            .decode_request(clip_id, times, GaussianFormat::Binary, precision)
+            .decode_request(clip_id, times, GaussianFormat::Binary, precision, keyframes)
             .await?;
         wire::parse_binary(&bytes)
     }
@@ -121,7 +134,20 @@ impl Client {
         times: &[f64],
         format: GaussianFormat,
     ) -> Result<Bytes, Error> {
-        self.decode_request(clip_id, times, format, Precision::F32)
+        self.gaussians_raw_keyframed(clip_id, times, format, None)
+            .await
+    }
+
+    /// [`gaussians_raw`](Self::gaussians_raw), with the sets between `keyframes` interpolated
+    /// by the server (`None`: every time exact).
+    pub async fn gaussians_raw_keyframed(
+        &self,
+        clip_id: &str,
+        times: &[f64],
+        format: GaussianFormat,
+        keyframes: Option<&Keyframes>,
+    ) -> Result<Bytes, Error> {
+        self.decode_request(clip_id, times, format, Precision::F32, keyframes)
             .await
     }
 
@@ -131,9 +157,13 @@ impl Client {
         times: &[f64],
         format: GaussianFormat,
         precision: Precision,
+        keyframes: Option<&Keyframes>,
     ) -> Result<Bytes, Error> {
         let url = self.url(&["v1", "clips", clip_id, "gaussians"]);
-        let body = json!({"times": times, "format": format, "precision": precision});
+        let mut body = json!({"times": times, "format": format, "precision": precision});
+        if let Some(keyframes) = keyframes {
+            body["keyframes"] = json!(keyframes);
+        }
         let request = self
             .http()
             .post(url)

@@ -15,6 +15,7 @@
 //! | [`clips`] | [`Clip`]: describe, list and delete clips |
 //! | [`upload`] | [`Client::upload`]: videos, archives and image directories, streamed with progress |
 //! | [`gaussians`] | [`Client::gaussians`] (parsed) and [`Client::gaussians_raw`] (JSON, binary, PLY, .splat) |
+//! | [`keyframes`] | [`Keyframes`]: exact sets at keyframes, interpolated between them, for decodes, streams and trajectories |
 //! | [`wire`] | parsers of the packed Gaussian payloads: the `C4GS` binary format and the proto's arrays |
 //! | [`render`] | [`RenderRequest`] and [`Client::render`]: images, depth, alpha and trajectory videos |
 //! | [`stream`] | [`Client::stream`]: Gaussian sets over a time range, over gRPC |
@@ -29,6 +30,7 @@ pub mod clips;
 pub mod error;
 pub mod gaussians;
 pub mod jobs;
+pub mod keyframes;
 pub mod model;
 pub mod render;
 pub mod sse;
@@ -42,6 +44,7 @@ pub use clips::{Clip, ClipSource};
 pub use error::Error;
 pub use gaussians::{GaussianFormat, GaussianFrame, Precision};
 pub use jobs::{Job, JobEvents, JobProgress, RefineRequest, Sampler, job_event_stream};
+pub use keyframes::Keyframes;
 pub use model::{InputSize, Model};
 pub use render::{
     CameraSpec, IntrinsicsSpec, RenderFormat, RenderRequest, Rendered, TrajectoryPreset,

@@ -7,7 +7,7 @@ use c4g_proto::v1 as proto;
 use futures_util::StreamExt;
 use futures_util::stream::BoxStream;
 
-use crate::{Client, Error, GaussianFrame, Precision, wire};
+use crate::{Client, Error, GaussianFrame, Keyframes, Precision, wire};
 
 /// The spacing of streamed sets.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -30,6 +30,9 @@ pub struct StreamOptions {
     pub spacing: Option<Spacing>,
     /// Precision on the wire (the sets arrive as `f32` either way).
     pub precision: Precision,
+    /// Decode keyframes over the range first and interpolate the sets between them (default:
+    /// every set exact).
+    pub keyframes: Option<Keyframes>,
 }
 
 /// Gaussian sets in time order, as they arrive; the first error ends the stream.
@@ -53,6 +56,7 @@ impl Client {
                 Spacing::Fps(fps) => proto::stream_gaussians_request::Spacing::Fps(fps),
             }),
             precision: wire::proto_precision(options.precision).into(),
+            keyframes: options.keyframes.as_ref().map(Keyframes::to_proto),
         };
         let mut grpc = self.grpc().await?;
         let frames = grpc

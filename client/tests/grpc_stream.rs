@@ -156,6 +156,7 @@ async fn streamed_sets_arrive_in_order_and_unpacked() {
             end: Some(1.25),
             spacing: Some(Spacing::Step(0.25)),
             precision,
+            keyframes: None,
         };
         let frames: Vec<_> = client
             .stream("clip", &options)

@@ -5,13 +5,16 @@
 //!
 //! The second form measures a package at the official dimensions with random weights (made by
 //! `python -m c4g.export --random-init --config official`): size, not weights, sets the cost.
+//! `-- keyframes` measures keyframed decoding on c4g-tiny (64 output times of its first test clip:
+//! exact, 8 uniform keyframes, adaptive), and prints each mode's decodes and error against exact.
 //! Results go in docs/benchmarks.md with the machine line this prints.
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
 use std::path::PathBuf;
 use std::time::Duration;
 
-use c4g_engine::{ContextFrame, Encoding, Engine, EngineOptions};
+use c4g_engine::keyframes::{Deviation, deviation};
+use c4g_engine::{ContextFrame, Encoding, Engine, EngineOptions, Keyframes};
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 
 fn machine() -> String {
@@ -116,6 +119,74 @@ fn official(c: &mut Criterion) {
     bench_package(c, "official", dir.into(), &[4], &[(4, 1)]);
 }
 
+/// c4g-tiny's first test clip, its context frames encoded.
+fn tiny_clip(engine: &Engine, dir: &std::path::Path) -> Encoding {
+    let clip = dir.join("test-clips/seed-2000000");
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(clip.join("clip.json")).unwrap()).unwrap();
+    let times: Vec<f64> = serde_json::from_value(meta["times"].clone()).unwrap();
+    let names: Vec<String> = serde_json::from_value(meta["frames"].clone()).unwrap();
+    let context: Vec<usize> = serde_json::from_value(meta["context"].clone()).unwrap();
+    let frames: Vec<ContextFrame> = context
+        .iter()
+        .map(|&i| {
+            let image = image::open(clip.join(&names[i])).unwrap().to_rgb8();
+            ContextFrame::new(times[i], engine.preprocess(&image).unwrap())
+        })
+        .collect();
+    engine.encode(&frames).unwrap()
+}
+
+fn keyframes(c: &mut Criterion) {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../models/c4g-tiny");
+    let engine = Engine::load(&dir, EngineOptions::default()).unwrap();
+    eprintln!(
+        "machine: {}; package: {}",
+        machine(),
+        engine.manifest().name
+    );
+    let encoding = tiny_clip(&engine, &dir);
+    let times = targets(&encoding, 64);
+    let exact = engine.decode(&encoding, &times).unwrap();
+    let modes = [
+        ("exact", Keyframes::Exact),
+        ("count8", Keyframes::Count { n: 8 }),
+        ("count16", Keyframes::Count { n: 16 }),
+        ("adaptive0.01", Keyframes::adaptive(0.01, 64)),
+        ("adaptive0.005", Keyframes::adaptive(0.005, 64)),
+        ("adaptive0.001", Keyframes::adaptive(0.001, 64)),
+    ];
+    let mut group = c.benchmark_group("tiny/keyframes64");
+    group.throughput(Throughput::Elements(times.len() as u64));
+    for (name, mode) in modes {
+        let (sets, stats) = engine.decode_keyframed(&encoding, &times, &mode).unwrap();
+        let worst = sets
+            .iter()
+            .zip(&exact)
+            .map(|(a, b)| deviation(a, b).unwrap())
+            .fold(Deviation::default(), |m, d| Deviation {
+                position: m.position.max(d.position),
+                appearance: m.appearance.max(d.appearance),
+                rotation: m.rotation.max(d.rotation),
+                log_scale: m.log_scale.max(d.log_scale),
+            });
+        eprintln!(
+            "{name}: {} exact decodes in {} decoder runs, {} interpolated; largest error against \
+             exact: position {:.2e}, colour/opacity {:.2e}, rotation {:.2e} rad",
+            stats.exact_decodes,
+            stats.decoder_runs,
+            stats.interpolated,
+            worst.position,
+            worst.appearance,
+            worst.rotation
+        );
+        group.bench_function(name, |b| {
+            b.iter(|| engine.decode_keyframed(&encoding, &times, &mode).unwrap())
+        });
+    }
+    group.finish();
+}
+
 criterion_group! {
     name = fixture_benches;
     config = Criterion::default().sample_size(10).warm_up_time(Duration::from_secs(1)).measurement_time(Duration::from_secs(10));
@@ -126,4 +197,9 @@ criterion_group! {
     config = Criterion::default().sample_size(10).warm_up_time(Duration::from_millis(1)).measurement_time(Duration::from_secs(1));
     targets = official
 }
-criterion_main!(fixture_benches, official_benches);
+criterion_group! {
+    name = keyframe_benches;
+    config = Criterion::default().sample_size(10).warm_up_time(Duration::from_millis(500)).measurement_time(Duration::from_secs(3));
+    targets = keyframes
+}
+criterion_main!(fixture_benches, official_benches, keyframe_benches);

@@ -4,8 +4,10 @@
 //! time order (the encoder treats the first frame specially and the scene lives in the first
 //! frame's camera, so the order is part of the result) and remembers where each came from in the
 //! caller's list, so that per-frame inputs given later in the caller's order (2D feature maps for
-//! lifting) can be matched to the encoded frames.
+//! lifting) can be matched to the encoded frames. It also carries, when the caller knows it, the
+//! source's frame step: the time policy's floor near the first frame (see [`crate::time`]).
 
+use crate::time::check_frame_step;
 use crate::{EngineError, Result};
 
 /// One context frame: its time and its preprocessed pixels (`[3, H, W]` at the package's input
@@ -32,6 +34,7 @@ pub struct Encoding {
     frame_order: Vec<usize>,
     features: Vec<f32>,
     shape: [usize; 3],
+    frame_step: Option<f64>,
 }
 
 impl Encoding {
@@ -91,7 +94,23 @@ impl Encoding {
             frame_order,
             features,
             shape,
+            frame_step: None,
         })
+    }
+
+    /// The same encoding with the source's frame step (seconds between consecutive source
+    /// frames; `None`: unknown, the time policy falls back to the smallest context gap).
+    /// Refuses a step that is not a positive, finite number.
+    pub fn with_frame_step(self, frame_step: Option<f64>) -> Result<Self> {
+        Ok(Self {
+            frame_step: check_frame_step(frame_step)?,
+            ..self
+        })
+    }
+
+    /// The source's frame step in seconds, when known.
+    pub fn frame_step(&self) -> Option<f64> {
+        self.frame_step
     }
 
     /// Times of the encoded frames, in encoded (increasing) order.
@@ -124,7 +143,8 @@ impl Encoding {
         (self.times[0], self.times[self.times.len() - 1])
     }
 
-    /// Takes the encoding apart into `(times, frame_order, features, shape)`.
+    /// Takes the encoding apart into `(times, frame_order, features, shape)` (the frame step,
+    /// [`frame_step`](Self::frame_step), is not among them).
     pub fn into_parts(self) -> (Vec<f64>, Vec<usize>, Vec<f32>, [usize; 3]) {
         (self.times, self.frame_order, self.features, self.shape)
     }
@@ -193,6 +213,20 @@ mod tests {
         assert_eq!(e.time_span(), (0.0, 2.0));
         assert_eq!(e.frame_order(), &[1, 0]);
         assert_eq!(e.frame_count(), 2);
+        assert_eq!(e.frame_step(), None);
+    }
+
+    #[test]
+    fn the_frame_step_rides_along_and_must_be_a_positive_finite_number() {
+        let e =
+            || Encoding::from_parts(vec![0.0, 2.0], vec![0, 1], vec![0.0; 2 * 3 * 4], [2, 3, 4]);
+        let stepped = e().unwrap().with_frame_step(Some(1.0 / 30.0)).unwrap();
+        assert_eq!(stepped.frame_step(), Some(1.0 / 30.0));
+        assert_eq!(stepped.with_frame_step(None).unwrap().frame_step(), None);
+        for bad in [0.0, -0.5, f64::NAN, f64::INFINITY] {
+            let err = e().unwrap().with_frame_step(Some(bad)).unwrap_err();
+            assert!(matches!(err, EngineError::InvalidInput(_)), "{err}");
+        }
     }
 
     #[test]

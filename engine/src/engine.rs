@@ -23,7 +23,7 @@ use crate::error::ShapeDim::{Fixed, Free};
 use crate::graph::{Contract, GAUSSIAN_CHANNELS};
 use crate::options::EngineOptions;
 use crate::package::{AttentionKind, Manifest, Package};
-use crate::time::NormalizedTimes;
+use crate::time::{NormalizedTimes, TimePolicy};
 use crate::{EngineError, Result, preprocess};
 
 /// Heads assumed when a package does not declare `architecture.decoder_heads` (C4G's own count).
@@ -33,6 +33,7 @@ const DEFAULT_DECODER_HEADS: usize = 16;
 pub struct Engine {
     package: Package,
     options: EngineOptions,
+    time_policy: TimePolicy,
     encoder: Graph,
     decoder: Graph,
     feature_decoder: Option<Graph>,
@@ -43,6 +44,7 @@ impl std::fmt::Debug for Engine {
         f.debug_struct("Engine")
             .field("package", &self.package.dir())
             .field("options", &self.options)
+            .field("time_policy", &self.time_policy)
             .field("feature_decoder", &self.feature_decoder.is_some())
             .finish()
     }
@@ -77,9 +79,13 @@ impl Engine {
             )?),
             _ => None,
         };
+        let time_policy = options
+            .time_policy
+            .unwrap_or_else(|| m.declared_time_policy());
         Ok(Self {
             package,
             options,
+            time_policy,
             encoder,
             decoder,
             feature_decoder,
@@ -99,6 +105,11 @@ impl Engine {
     /// The options the engine was loaded with.
     pub fn options(&self) -> &EngineOptions {
         &self.options
+    }
+
+    /// The time policy decodes use: the options' when they name one, else the package's.
+    pub fn time_policy(&self) -> TimePolicy {
+        self.time_policy
     }
 
     /// True when the package can lift feature maps onto its Gaussians.
@@ -140,12 +151,10 @@ impl Engine {
         Encoding::from_parts(times, order, features, [t, p, c])
     }
 
-    /// Decodes the Gaussians at each target time, normalising times with the engine's policy.
+    /// Decodes the Gaussians at each target time, normalising times with the engine's policy
+    /// (and the encoding's source frame step, when it has one).
     pub fn decode(&self, encoding: &Encoding, targets: &[f64]) -> Result<Vec<GaussianSet>> {
-        let times = self
-            .options
-            .time_policy
-            .normalize_all(encoding.times(), targets)?;
+        let times = self.normalize(encoding, targets)?;
         self.decode_normalized(encoding, &times)
     }
 
@@ -176,11 +185,14 @@ impl Engine {
         context_feature_maps: &[f32],
         targets: &[f64],
     ) -> Result<Vec<GaussianSet>> {
-        let times = self
-            .options
-            .time_policy
-            .normalize_all(encoding.times(), targets)?;
+        let times = self.normalize(encoding, targets)?;
         self.decode_features_normalized(encoding, context_feature_maps, &times)
+    }
+
+    /// The normalised times `decode` feeds the decoder for `targets` of `encoding`.
+    pub fn normalize(&self, encoding: &Encoding, targets: &[f64]) -> Result<Vec<NormalizedTimes>> {
+        self.time_policy
+            .normalize_all_with_step(encoding.times(), encoding.frame_step(), targets)
     }
 
     /// [`decode_features`](Self::decode_features) for already-normalised times.

@@ -29,9 +29,14 @@ fn port(name: &'static str, dims: Vec<ShapeDim>) -> Port {
 /// What one graph of the package must look like.
 pub(crate) struct Contract {
     graph: &'static str,
+    precision: String,
     inputs: Vec<Port>,
     outputs: Vec<Port>,
 }
+
+/// The ONNX metadata entry in which the export tool (`c4g.precision`) stamps the precision a graph
+/// computes in; a graph without one computes in f32.
+pub(crate) const PRECISION_KEY: &str = "c4g.precision";
 
 use ShapeDim::{Fixed, Free};
 
@@ -41,6 +46,7 @@ impl Contract {
         let (h, w) = (m.input.height as usize, m.input.width as usize);
         Self {
             graph: "encoder",
+            precision: m.precision.clone(),
             inputs: vec![port(
                 "frames",
                 vec![Free("T"), Fixed(3), Fixed(h), Fixed(w)],
@@ -53,6 +59,7 @@ impl Contract {
     pub(crate) fn decoder(m: &Manifest) -> Self {
         Self {
             graph: "decoder",
+            precision: m.precision.clone(),
             inputs: decoder_inputs(m),
             outputs: vec![port(
                 "gaussians",
@@ -71,6 +78,7 @@ impl Contract {
         ));
         Self {
             graph: "feature_decoder",
+            precision: m.precision.clone(),
             inputs,
             outputs: vec![port(
                 "gaussian_features",
@@ -108,6 +116,18 @@ impl Contract {
                 })?;
                 check_outlet(p, outlet).map_err(|reason| invalid(format!("{role} {reason}")))?;
             }
+        }
+        let stamped = session
+            .metadata()
+            .ok()
+            .and_then(|m| m.custom(PRECISION_KEY))
+            .unwrap_or_else(|| "f32".to_owned());
+        if stamped != self.precision {
+            return Err(invalid(format!(
+                "the graph computes in {stamped} (its {PRECISION_KEY:?} metadata) but model.json \
+                 declares precision {:?}: convert the package again with `python -m c4g.precision`",
+                self.precision
+            )));
         }
         Ok(())
     }

@@ -4,7 +4,8 @@
 //! → [`Encoding`]), and decoded at any target time inside their span ([`Engine::decode`] →
 //! [`GaussianSet`](c4g_renderer::GaussianSet)), with timestamps normalised by a [`TimePolicy`].
 //! A package with a feature decoder also lifts 2D feature maps onto the Gaussians
-//! ([`Engine::decode_features`]).
+//! ([`Engine::decode_features`]). Many times decode cheaper through [`keyframes`]: exact sets at a
+//! few keyframes, interpolated per Gaussian in between ([`Engine::decode_keyframed`]).
 //!
 //! | module | holds |
 //! |---|---|
@@ -14,6 +15,7 @@
 //! | `options` | engine options: the sessions' ([`SessionOptions`]), the time policy, batching |
 //! | `encoding` | context frames in, encodings out |
 //! | `engine` | encode and decode |
+//! | [`keyframes`] | keyframed decoding: where keyframes go, and the interpolation between them |
 //! | `graph` | each ONNX graph's inputs and outputs, checked at load |
 //! | `error` | the crate's error type |
 //!
@@ -25,6 +27,7 @@ mod encoding;
 mod engine;
 mod error;
 mod graph;
+pub mod keyframes;
 mod options;
 pub mod package;
 pub mod preprocess;
@@ -37,6 +40,7 @@ pub use c4g_runtime::{
 pub use encoding::{ContextFrame, Encoding};
 pub use engine::Engine;
 pub use error::{EngineError, Result};
+pub use keyframes::{KeyframeStats, KeyframeTrack, Keyframes};
 pub use options::EngineOptions;
 pub use package::{Manifest, Package};
 pub use time::{NormalizedTimes, TimePolicy};

@@ -9,8 +9,9 @@ use crate::time::TimePolicy;
 pub struct EngineOptions {
     /// How the graphs' sessions are configured: threads, execution provider, CPU arena.
     pub session: SessionOptions,
-    /// How timestamps are normalised for the decoder.
-    pub time_policy: TimePolicy,
+    /// How timestamps are normalised for the decoder: `None` uses the policy the package declares
+    /// (`model.json`'s `time_policy`, frame-step when it says none), `Some` overrides it.
+    pub time_policy: Option<TimePolicy>,
     /// Most targets decoded in one decoder run; larger requests are split into chunks.
     pub max_batch: usize,
     /// Bytes of working memory one decoder run may need; batches shrink (down to one target) to
@@ -25,7 +26,7 @@ impl Default for EngineOptions {
     fn default() -> Self {
         Self {
             session: SessionOptions::default(),
-            time_policy: TimePolicy::Stable,
+            time_policy: None,
             max_batch: 16,
             decoder_memory_budget: 4 << 30,
         }
@@ -38,10 +39,10 @@ mod tests {
     use crate::ExecutionProvider;
 
     #[test]
-    fn default_options_run_on_the_cpu_with_the_stable_policy() {
+    fn default_options_run_on_the_cpu_with_the_packages_policy() {
         let o = EngineOptions::default();
         assert_eq!(o.session.execution_provider, ExecutionProvider::Cpu);
-        assert_eq!(o.time_policy, TimePolicy::Stable);
+        assert_eq!(o.time_policy, None);
         assert_eq!((o.session.intra_op_threads, o.max_batch), (0, 16));
         assert_eq!(o.decoder_memory_budget, 4 << 30);
         assert!(!o.session.cpu_arena);

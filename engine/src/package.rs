@@ -8,14 +8,19 @@
 use std::fs;
 use std::path::{Component, Path, PathBuf};
 
+use c4g_renderer::raster::Footprint;
 use serde::Deserialize;
 
+use crate::time::TimePolicy;
 use crate::{EngineError, Result};
 
 /// The `format` every package declares.
 pub const PACKAGE_FORMAT: &str = "c4g-package";
 /// The `format_version` this engine reads.
 pub const PACKAGE_FORMAT_VERSION: u32 = 1;
+/// The precisions a package's graphs may compute in: f32, f16 (weights and activations, made by
+/// `python -m c4g.precision`) and int8 (dynamic quantization of the large MatMuls).
+pub const PRECISIONS: [&str; 3] = ["f32", "f16", "int8"];
 /// The canonical Gaussian layout, channel by channel, as `gaussian_layout` must list it.
 pub const CANONICAL_LAYOUT: [&str; 14] = [
     "x", "y", "z", "scale_x", "scale_y", "scale_z", "rot_w", "rot_x", "rot_y", "rot_z", "opacity",
@@ -42,6 +47,14 @@ pub struct InputSpec {
 pub struct FeatureDecoderSpec {
     /// Width F of the 2D feature maps it lifts (and of the per-Gaussian features it returns).
     pub feature_width: usize,
+}
+
+/// How the package's Gaussians were rendered in training: `model.json`'s `rasterizer`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+pub struct RasterizerSpec {
+    /// Which pixels a Gaussian reaches (`"ellipse"` or `"3dgs"`); absent: the ellipse.
+    #[serde(default)]
+    pub footprint: Footprint,
 }
 
 /// The ONNX files of a package, relative to its directory: `model.json`'s `files`.
@@ -85,11 +98,21 @@ pub struct Manifest {
     pub gaussian_count: usize,
     /// Channel names of the decoder's output; must be [`CANONICAL_LAYOUT`].
     pub gaussian_layout: Vec<String>,
-    /// Numeric precision of the graphs' inputs and outputs; `"f32"`.
+    /// The precision the graphs compute in (one of [`PRECISIONS`]); their inputs and outputs are
+    /// f32 whatever it is. Each graph carries the same value in its `c4g.precision` metadata.
     pub precision: String,
     /// How the graphs compute attention; decides how decoder memory grows with tokens.
     #[serde(default)]
     pub attention: AttentionKind,
+    /// The time policy the weights were trained with (`"frame-step"`, `"stable"`,
+    /// `"reference"`); absent: frame-step, right for the official weights (see
+    /// [`declared_time_policy`](Self::declared_time_policy)).
+    #[serde(default)]
+    pub time_policy: Option<TimePolicy>,
+    /// The rasterizer the weights were trained with; absent: the ellipse footprint, what every
+    /// package made before the key existed was rendered with (see [`footprint`](Self::footprint)).
+    #[serde(default)]
+    pub rasterizer: Option<RasterizerSpec>,
     /// The ONNX files.
     pub files: PackageFiles,
     /// Present when the package can lift 2D features onto its Gaussians.
@@ -104,6 +127,18 @@ pub struct Manifest {
 }
 
 impl Manifest {
+    /// The time policy the package asks decodes to use: the one it declares, else frame-step,
+    /// which equals the reference normalisation wherever the official weights were trained.
+    pub fn declared_time_policy(&self) -> TimePolicy {
+        self.time_policy.unwrap_or_default()
+    }
+
+    /// The footprint the package's Gaussians are meant to be rendered with: the one it declares,
+    /// else [`Footprint::Ellipse`].
+    pub fn footprint(&self) -> Footprint {
+        self.rasterizer.map(|r| r.footprint).unwrap_or_default()
+    }
+
     /// Width F of the feature decoder's feature maps, when the package has one.
     pub fn feature_decoder_width(&self) -> Option<usize> {
         self.feature_decoder.as_ref().map(|f| f.feature_width)
@@ -211,9 +246,9 @@ impl Package {
                 m.gaussian_layout
             )));
         }
-        if m.precision != "f32" {
+        if !PRECISIONS.contains(&m.precision.as_str()) {
             return Err(self.invalid(format!(
-                "precision {:?} is not supported (only \"f32\")",
+                "precision {:?} is not supported (one of {PRECISIONS:?})",
                 m.precision
             )));
         }
@@ -391,6 +426,8 @@ mod tests {
         assert_eq!(m.feature_decoder_width(), Some(32));
         assert_eq!(m.provenance["seed"], 7);
         assert_eq!(m.decoder_heads(), Some(16));
+        assert_eq!(m.time_policy, None);
+        assert_eq!(m.declared_time_policy(), TimePolicy::FrameStep);
         assert_eq!(package.decoder_path(), tmp.0.join("decoder.onnx"));
         assert_eq!(
             package.feature_decoder_path(),
@@ -417,6 +454,66 @@ mod tests {
     }
 
     #[test]
+    fn a_package_declares_the_time_policy_it_was_trained_with() {
+        for (name, policy) in [
+            ("stable", TimePolicy::Stable),
+            ("frame-step", TimePolicy::FrameStep),
+            ("reference", TimePolicy::Reference),
+        ] {
+            let package = open_with(
+                &format!("policy-{name}"),
+                |m| m["time_policy"] = json!(name),
+                &ALL_FILES,
+            )
+            .unwrap();
+            assert_eq!(package.manifest().time_policy, Some(policy));
+            assert_eq!(package.manifest().declared_time_policy(), policy);
+        }
+        let err = open_with(
+            "policy-unknown",
+            |m| m["time_policy"] = json!("blurry"),
+            &ALL_FILES,
+        )
+        .unwrap_err();
+        assert!(matches!(err, EngineError::Manifest { .. }), "{err}");
+    }
+
+    #[test]
+    fn a_package_declares_the_footprint_it_was_trained_with() {
+        let declared = |name: &str, rasterizer: Option<Value>| {
+            let package = open_with(
+                &format!("footprint-{name}"),
+                |m| {
+                    if let Some(r) = rasterizer {
+                        m["rasterizer"] = r;
+                    }
+                },
+                &ALL_FILES,
+            );
+            package.map(|p| p.manifest().footprint())
+        };
+        assert_eq!(declared("absent", None).unwrap(), Footprint::Ellipse);
+        assert_eq!(
+            declared("empty", Some(json!({}))).unwrap(),
+            Footprint::Ellipse
+        );
+        assert_eq!(
+            declared("ellipse", Some(json!({"footprint": "ellipse"}))).unwrap(),
+            Footprint::Ellipse
+        );
+        assert_eq!(
+            declared(
+                "3dgs",
+                Some(json!({"footprint": "3dgs", "note": "ignored"}))
+            )
+            .unwrap(),
+            Footprint::Tiles3dgs
+        );
+        let err = declared("unknown", Some(json!({"footprint": "gsplat"}))).unwrap_err();
+        assert!(matches!(err, EngineError::Manifest { .. }), "{err}");
+    }
+
+    #[test]
     fn a_missing_directory_is_an_io_error_naming_the_manifest() {
         let err = Package::open("/nonexistent/c4g-package").unwrap_err();
         assert!(matches!(err, EngineError::Io { .. }));
@@ -440,7 +537,7 @@ mod tests {
             ("/format", json!("onnx"), "format"),
             ("/format_version", json!(2), "format_version 2"),
             ("/gaussian_layout/6", json!("rot_x"), "gaussian_layout"),
-            ("/precision", json!("f16"), "precision"),
+            ("/precision", json!("f64"), "precision"),
             ("/input/crop", json!("pad"), "input.crop"),
             ("/input/resize", json!("bilinear"), "input.resize"),
             ("/input/value_range", json!([1.0, -1.0]), "value_range"),

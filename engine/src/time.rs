@@ -12,49 +12,83 @@
 //! sends every other context time to ~1e8, and the sinusoidal embedding of such arguments is
 //! noise. The reference script hits exactly that case.
 //!
-//! # The stable policy (the default)
-//! With `m = min(context)`, `M = max(context)`, `n` distinct context times and their mean spacing
-//! `h = (M - m) / (n - 1)`:
+//! # What training saw
+//! C4G was trained with raw integer source-frame indices as timestamps, so every target it
+//! learned from was at least one source frame after the first context frame `m` (or at `m`
+//! itself, where the reference feeds rounding noise of magnitude 1e8 to sin/cos: nothing a policy
+//! can or should reproduce). The reference is well conditioned on all of that; it only breaks on
+//! `[m, m + s)`, `s` the source's frame step, where training had no sound input.
 //!
-//! `rel(t) = (t - m) / max(target - m, h)`, computed in f64 and cast to f32,
+//! # The frame-step policy (the default)
+//! With `m = min(context)`, `M = max(context)` and `s` the clip's source frame step (seconds
+//! between source frames, carried by the [`Encoding`](crate::Encoding)):
 //!
-//! and every normalised time is 0 when the context is a single instant (`M == m`). Why this one:
-//! - **It is the reference wherever the reference is sane.** For every target at least one mean
-//!   spacing after the first frame the denominator is `target - m`, the reference's own. With
-//!   frame indices as times (what the reference uses) the results are bit-identical, the
-//!   reference's `+ 1e-8` vanishing in f32; with seconds they agree to float rounding (~1e-7
-//!   relative). That covers every target the model was trained on except those in the first gap,
-//!   so the model sees what it learned.
-//! - **It cannot blow up.** In the first gap the denominator stops shrinking at `h`: the context
-//!   times are spread over `[0, n - 1]` and the target over `[0, 1)`. No normalised time exceeds
-//!   `n - 1` in magnitude, so sin/cos never see huge arguments.
-//! - **It is continuous in the target** (the two branches of the `max` meet at `target = m + h`),
-//!   so decoded Gaussians move smoothly as a client scrubs through time.
-//! - **It ignores the order of the context times** (min, max and the distinct count do not care),
-//!   so the same clip gives the same normalisation however its frames arrived; duplicates do not
-//!   shrink the spacing.
+//! `rel(t) = (t - m) / max(target - m, s)`, computed in f64 and cast to f32,
+//!
+//! and every normalised time is 0 when the context is a single instant (`M == m`).
+//! - **It is the reference wherever training was.** For every target at least one source frame
+//!   after `m` the denominator is `target - m`, the reference's own: bit-identical with frame
+//!   indices as times (the reference's `+ 1e-8` vanishes in f32), equal to float rounding with
+//!   seconds. It deviates only on `[m, m + s)`.
+//! - **It cannot blow up, and the neighbourhood cannot be smaller.** No normalised time exceeds
+//!   `(M - m) / s`, the number of source frames in the span: the largest value training itself
+//!   produced (target one frame after `m`, context frame at `M`). Any policy equal to the
+//!   reference on `[m + ε, M]` reaches `(M - m) / ε` there, so a floor below `s` would feed the
+//!   model values training never produced.
+//! - **At `target == m`** the context times are what training saw for the target one source
+//!   frame later (`(t - m) / s`, whole frame offsets), and the target maps to 0: the limit from
+//!   the right, so the policy stays continuous.
+//! - **Unknown frame step.** An encoding without source information (an engine caller that
+//!   passes none) falls back to the smallest positive gap between distinct context times. The
+//!   context frames are source frames, so that gap bounds `s` from above: still bounded, still
+//!   continuous, deviating on the larger `[m, m + gap)`. For evenly spaced context frames the gap
+//!   is the mean spacing and the result is exactly the stable policy's.
+//! - **It is continuous in the target** (the branches of the `max` meet at `target = m + s`),
+//!   **ignores the order of the context times** and **is defined for one context frame and for
+//!   duplicate times** (duplicates do not shrink the fallback gap).
+//!
+//! # The stable policy (what c4g-tiny was trained with)
+//! With `n` distinct context times and their mean spacing `h = (M - m) / (n - 1)`:
+//! `rel(t) = (t - m) / max(target - m, h)` (0 for a single instant). Bounded by `n - 1`, but it
+//! deviates from the reference on the whole first interval `[m, m + h)`, where the reference is
+//! sound for every target a source frame after `m`: for the official weights it is the wrong
+//! default. Packages trained with it (ours) declare it in `model.json`.
 //!
 //! [`TimePolicy::Reference`] reproduces the reference bit for bit (computed in f32 as the
 //! reference does) for parity tests against it.
 //!
-//! # What both policies refuse
-//! An empty context, a NaN or infinite time, and a target outside `[m, M]`: the model interpolates
-//! between context frames and was never trained to extrapolate, so the engine says so instead of
-//! returning plausible-looking garbage. A span so wide that the arithmetic overflows is refused
-//! too: every value handed to the decoder is finite.
+//! # What every policy refuses
+//! An empty context, a NaN or infinite time, a frame step that is not a positive finite number,
+//! and a target outside `[m, M]`: the model interpolates between context frames and was never
+//! trained to extrapolate, so the engine says so instead of returning plausible-looking garbage.
+//! A span so wide (or a step so small) that the arithmetic overflows is refused too: every value
+//! handed to the decoder is finite.
+
+use std::fmt;
+use std::str::FromStr;
+
+use serde::{Deserialize, Serialize};
 
 use crate::{EngineError, Result};
 
 /// How timestamps are normalised before they condition the decoder. See the module docs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+///
+/// Serialised (in `model.json`, on the command line) in kebab case: `frame-step`, `stable`,
+/// `reference`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
 pub enum TimePolicy {
     /// The reference code's normalisation, bit for bit (f32 arithmetic). Blows up for targets
     /// near the first context frame; for parity tests.
     Reference,
     /// The reference's normalisation with the denominator floored at the mean spacing of the
-    /// context times: bounded, continuous, order-independent.
-    #[default]
+    /// context times: bounded, continuous, order-independent. What c4g-tiny was trained with.
     Stable,
+    /// The reference's normalisation with the denominator floored at the source's frame step:
+    /// equal to the reference for every target a source frame or more after the first context
+    /// frame, bounded, continuous, order-independent. The default.
+    #[default]
+    FrameStep,
 }
 
 /// The normalised times for one target: one row of `context_times` and one `target_times` entry.
@@ -70,15 +104,50 @@ pub struct NormalizedTimes {
 const REFERENCE_EPSILON: f32 = 1e-8;
 
 impl TimePolicy {
-    /// Normalises `context` for one `target`.
+    /// Every policy, for listings and tests.
+    pub const ALL: [TimePolicy; 3] = [Self::FrameStep, Self::Stable, Self::Reference];
+
+    /// The policy's name in `model.json` and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Reference => "reference",
+            Self::Stable => "stable",
+            Self::FrameStep => "frame-step",
+        }
+    }
+
+    /// Normalises `context` for one `target`, the source frame step unknown.
     pub fn normalize(self, context: &[f64], target: f64) -> Result<NormalizedTimes> {
-        let span = Span::of(context)?;
+        self.normalize_with_step(context, None, target)
+    }
+
+    /// Normalises `context` once per target, in the order of `targets`, the source frame step
+    /// unknown.
+    pub fn normalize_all(self, context: &[f64], targets: &[f64]) -> Result<Vec<NormalizedTimes>> {
+        self.normalize_all_with_step(context, None, targets)
+    }
+
+    /// Normalises `context` for one `target`; `frame_step` is the source's seconds between frames
+    /// when known (only [`TimePolicy::FrameStep`] reads it).
+    pub fn normalize_with_step(
+        self,
+        context: &[f64],
+        frame_step: Option<f64>,
+        target: f64,
+    ) -> Result<NormalizedTimes> {
+        let span = Span::of(context, frame_step)?;
         self.normalize_in(&span, context, target)
     }
 
-    /// Normalises `context` once per target, in the order of `targets`.
-    pub fn normalize_all(self, context: &[f64], targets: &[f64]) -> Result<Vec<NormalizedTimes>> {
-        let span = Span::of(context)?;
+    /// [`normalize_with_step`](Self::normalize_with_step) once per target, in the order of
+    /// `targets`.
+    pub fn normalize_all_with_step(
+        self,
+        context: &[f64],
+        frame_step: Option<f64>,
+        targets: &[f64],
+    ) -> Result<Vec<NormalizedTimes>> {
+        let span = Span::of(context, frame_step)?;
         targets
             .iter()
             .map(|&target| self.normalize_in(&span, context, target))
@@ -93,6 +162,7 @@ impl TimePolicy {
         let times = match self {
             Self::Reference => reference(span, context, target),
             Self::Stable => stable(span, context, target),
+            Self::FrameStep => frame_step(span, context, target),
         };
         let all_finite = times.target.is_finite() && times.context.iter().all(|v| v.is_finite());
         if all_finite {
@@ -103,15 +173,49 @@ impl TimePolicy {
     }
 }
 
-/// What both policies need to know about the context times.
+impl fmt::Display for TimePolicy {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for TimePolicy {
+    type Err = EngineError;
+
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|p| p.name() == s)
+            .ok_or_else(|| {
+                EngineError::InvalidInput(format!(
+                    "unknown time policy {s:?} (known: frame-step, stable, reference)"
+                ))
+            })
+    }
+}
+
+/// Checks a source frame step: `None` (unknown) or a positive finite number of seconds.
+pub(crate) fn check_frame_step(frame_step: Option<f64>) -> Result<Option<f64>> {
+    match frame_step {
+        Some(s) if !(s.is_finite() && s > 0.0) => Err(EngineError::InvalidInput(format!(
+            "a source frame step must be a positive, finite number of seconds, got {s}"
+        ))),
+        step => Ok(step),
+    }
+}
+
+/// What the policies need to know about the context times.
 struct Span {
     first: f64,
     last: f64,
     distinct: usize,
+    /// The source's frame step when given, else the smallest gap between distinct context times
+    /// (`None` for a single instant).
+    step: Option<f64>,
 }
 
 impl Span {
-    fn of(context: &[f64]) -> Result<Self> {
+    fn of(context: &[f64], frame_step: Option<f64>) -> Result<Self> {
         if context.is_empty() {
             return Err(EngineError::EmptyContext);
         }
@@ -121,13 +225,16 @@ impl Span {
                 value,
             });
         }
+        let frame_step = check_frame_step(frame_step)?;
         let mut sorted: Vec<f64> = context.iter().map(|&t| canonical(t)).collect();
         sorted.sort_by(f64::total_cmp);
         sorted.dedup();
+        let smallest_gap = sorted.windows(2).map(|w| w[1] - w[0]).reduce(f64::min);
         Ok(Self {
             first: sorted[0],
             last: sorted[sorted.len() - 1],
             distinct: sorted.len(),
+            step: frame_step.or(smallest_gap),
         })
     }
 
@@ -190,6 +297,22 @@ fn stable(span: &Span, context: &[f64], target: f64) -> NormalizedTimes {
     }
 }
 
+fn frame_step(span: &Span, context: &[f64], target: f64) -> NormalizedTimes {
+    let Some(step) = span.step.filter(|_| span.distinct > 1) else {
+        return NormalizedTimes {
+            context: vec![0.0; context.len()],
+            target: 0.0,
+        };
+    };
+    // Division is monotone in both operands, so no value exceeds (M - m) / step: no clamp needed.
+    let denominator = (target - span.first).max(step);
+    let rel = |t: f64| ((canonical(t) - span.first) / denominator) as f32;
+    NormalizedTimes {
+        context: context.iter().map(|&t| rel(t)).collect(),
+        target: rel(target),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use proptest::prelude::*;
@@ -204,9 +327,33 @@ mod tests {
         TimePolicy::Reference.normalize(context, target).unwrap()
     }
 
+    fn frame_step(context: &[f64], step: Option<f64>, target: f64) -> NormalizedTimes {
+        TimePolicy::FrameStep
+            .normalize_with_step(context, step, target)
+            .unwrap()
+    }
+
     #[test]
-    fn stable_is_the_default() {
-        assert_eq!(TimePolicy::default(), TimePolicy::Stable);
+    fn frame_step_is_the_default() {
+        assert_eq!(TimePolicy::default(), TimePolicy::FrameStep);
+    }
+
+    #[test]
+    fn policies_have_kebab_case_names_in_json_and_text() {
+        for (policy, name) in [
+            (TimePolicy::FrameStep, "frame-step"),
+            (TimePolicy::Stable, "stable"),
+            (TimePolicy::Reference, "reference"),
+        ] {
+            assert_eq!(policy.name(), name);
+            assert_eq!(policy.to_string(), name);
+            assert_eq!(name.parse::<TimePolicy>().unwrap(), policy);
+            let json = serde_json::to_string(&policy).unwrap();
+            assert_eq!(json, format!("{name:?}"));
+            assert_eq!(serde_json::from_str::<TimePolicy>(&json).unwrap(), policy);
+        }
+        assert!("framestep".parse::<TimePolicy>().is_err());
+        assert!(serde_json::from_str::<TimePolicy>("\"FrameStep\"").is_err());
     }
 
     #[test]
@@ -266,13 +413,17 @@ mod tests {
 
     #[test]
     fn a_single_frame_normalises_to_zero() {
-        for policy in [TimePolicy::Stable, TimePolicy::Reference] {
-            let r = policy.normalize(&[5.0], 5.0).unwrap();
-            assert_eq!(r.context, vec![0.0]);
-            assert_eq!(r.target, 0.0);
+        for policy in TimePolicy::ALL {
+            for step in [None, Some(1.0 / 30.0)] {
+                let r = policy.normalize_with_step(&[5.0], step, 5.0).unwrap();
+                assert_eq!(r.context, vec![0.0]);
+                assert_eq!(r.target, 0.0);
+            }
         }
         let s = stable(&[3.0, 3.0, 3.0], 3.0);
         assert_eq!(s.context, vec![0.0; 3]);
+        let f = frame_step(&[3.0, 3.0, 3.0], Some(0.5), 3.0);
+        assert_eq!(f.context, vec![0.0; 3]);
     }
 
     #[test]
@@ -306,8 +457,8 @@ mod tests {
     }
 
     #[test]
-    fn both_policies_refuse_to_extrapolate() {
-        for policy in [TimePolicy::Stable, TimePolicy::Reference] {
+    fn every_policy_refuses_to_extrapolate() {
+        for policy in TimePolicy::ALL {
             for target in [-0.5, 6.5] {
                 let err = policy.normalize(&[0.0, 2.0, 4.0, 6.0], target).unwrap_err();
                 assert!(
@@ -327,8 +478,8 @@ mod tests {
     }
 
     #[test]
-    fn both_policies_refuse_empty_and_non_finite_input() {
-        for policy in [TimePolicy::Stable, TimePolicy::Reference] {
+    fn every_policy_refuses_empty_and_non_finite_input() {
+        for policy in TimePolicy::ALL {
             assert!(matches!(
                 policy.normalize(&[], 0.0),
                 Err(EngineError::EmptyContext)
@@ -360,6 +511,10 @@ mod tests {
             .normalize(&[-f64::MAX, f64::MAX], 0.0)
             .unwrap_err();
         assert!(matches!(err, EngineError::TimeOverflow { .. }), "{err}");
+        let err = TimePolicy::FrameStep
+            .normalize_with_step(&[0.0, 1e300], Some(1e-300), 0.0)
+            .unwrap_err();
+        assert!(matches!(err, EngineError::TimeOverflow { .. }), "{err}");
         let err = TimePolicy::Reference
             .normalize(&[0.0, 1e300], 1e300)
             .unwrap_err();
@@ -379,6 +534,180 @@ mod tests {
             TimePolicy::Stable
                 .normalize_all(&[0.0, 1.0], &[0.5, 2.0])
                 .is_err()
+        );
+    }
+
+    #[test]
+    fn frame_step_is_the_reference_from_one_source_frame_after_the_first() {
+        // Seconds at 30 fps, context every 2 s: the reference is sound from 1/30 s on.
+        let context = [0.0, 2.0, 4.0, 6.0];
+        for target in [1.0, 0.5, 2.0, 3.0, 6.0] {
+            let f = frame_step(&context, Some(1.0 / 30.0), target);
+            let r = reference(&context, target);
+            assert_eq!(f, r, "t={target}");
+        }
+        // Frame indices, step 1: every target from m + 1 on, bit for bit.
+        for target in 1..=6 {
+            let target = f64::from(target);
+            assert_eq!(
+                frame_step(&context, Some(1.0), target),
+                reference(&context, target)
+            );
+        }
+        // Where stable deviates (the whole first interval), frame-step does not.
+        assert_ne!(stable(&context, 1.0), reference(&context, 1.0));
+    }
+
+    #[test]
+    fn frame_step_floors_the_denominator_at_the_step_inside_the_first_source_frame() {
+        let f = frame_step(&[0.0, 2.0, 4.0, 6.0], Some(0.5), 0.25);
+        assert_eq!(f.context, vec![0.0, 4.0, 8.0, 12.0]);
+        assert_eq!(f.target, 0.5);
+    }
+
+    #[test]
+    fn frame_step_at_the_first_frame_sees_the_next_source_frames_context() {
+        let step = 1.0 / 30.0;
+        let context = [0.0, 2.0, 4.0, 6.0];
+        let at = frame_step(&context, Some(step), 0.0);
+        let next = frame_step(&context, Some(step), step);
+        assert_eq!(at.context, next.context);
+        assert_eq!(at.context, vec![0.0, 60.0, 120.0, 180.0]);
+        assert_eq!((at.target, next.target), (0.0, 1.0));
+    }
+
+    #[test]
+    fn frame_step_is_continuous_where_its_branches_meet() {
+        let context = [10.0, 12.0, 14.0, 16.0];
+        let step = 0.25;
+        let below = frame_step(&context, Some(step), 10.25 - 1e-9);
+        let at = frame_step(&context, Some(step), 10.25);
+        for (a, b) in below.context.iter().zip(&at.context) {
+            assert!((a - b).abs() < 1e-5, "{a} vs {b}");
+        }
+        assert!((below.target - at.target).abs() < 1e-6);
+    }
+
+    #[test]
+    fn an_unknown_step_falls_back_to_the_smallest_context_gap() {
+        // Uneven context: gap 0.5 (between 2 and 2.5), mean spacing 2.
+        let context = [0.0, 2.0, 2.5, 6.0];
+        for target in [0.0, 0.25, 0.5, 1.0, 3.0, 6.0] {
+            assert_eq!(
+                frame_step(&context, None, target),
+                frame_step(&context, Some(0.5), target)
+            );
+        }
+        assert_eq!(
+            frame_step(&context, None, 1.0),
+            reference(&context, 1.0),
+            "past the smallest gap, the reference"
+        );
+        // Evenly spaced frames: the smallest gap is the mean spacing, so it is the stable policy.
+        let even = [0.0, 2.0, 4.0, 6.0];
+        for target in [0.0, 0.5, 1.0, 2.0, 5.0] {
+            assert_eq!(frame_step(&even, None, target), stable(&even, target));
+        }
+        // Duplicates do not shrink the gap.
+        assert_eq!(
+            frame_step(&[0.0, 0.0, 2.0, 4.0, 4.0, 6.0], None, 1.0).context,
+            vec![0.0, 0.0, 1.0, 2.0, 2.0, 3.0]
+        );
+    }
+
+    #[test]
+    fn frame_step_keeps_unsorted_context_in_its_order() {
+        let f = frame_step(&[6.0, 0.0, 4.0, 2.0], Some(1.0), 0.5);
+        assert_eq!(f.context, vec![6.0, 0.0, 4.0, 2.0]);
+        assert_eq!(f.target, 0.5);
+    }
+
+    #[test]
+    fn a_frame_step_that_is_not_a_positive_finite_number_is_refused() {
+        for bad in [0.0, -1.0 / 30.0, f64::NAN, f64::INFINITY] {
+            for policy in TimePolicy::ALL {
+                let err = policy
+                    .normalize_with_step(&[0.0, 1.0], Some(bad), 0.5)
+                    .unwrap_err();
+                assert!(matches!(err, EngineError::InvalidInput(_)), "{err}");
+            }
+        }
+    }
+
+    #[test]
+    fn only_frame_step_reads_the_frame_step() {
+        let context = [0.0, 2.0, 4.0, 6.0];
+        for policy in [TimePolicy::Stable, TimePolicy::Reference] {
+            assert_eq!(
+                policy
+                    .normalize_with_step(&context, Some(0.1), 1.0)
+                    .unwrap(),
+                policy.normalize(&context, 1.0).unwrap()
+            );
+        }
+    }
+
+    /// One case of the table the Python mirror wrote (models/fixtures/time-policy-cases.json).
+    /// Numbers travel as IEEE bit patterns (f64 inputs, f32 outputs), so that no decimal
+    /// parsing stands between the two implementations.
+    #[derive(serde::Deserialize)]
+    struct CrossCase {
+        policy: TimePolicy,
+        context_bits: Vec<u64>,
+        frame_step_bits: Option<u64>,
+        target_bits: u64,
+        /// `None` when the mirror refused the input.
+        expected: Option<CrossExpected>,
+    }
+
+    #[derive(serde::Deserialize)]
+    struct CrossExpected {
+        context_bits: Vec<u32>,
+        target_bits: u32,
+    }
+
+    #[test]
+    fn every_policy_agrees_exactly_with_the_python_mirror() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../models/fixtures/time-policy-cases.json"
+        );
+        let text = std::fs::read_to_string(path).unwrap();
+        let table: serde_json::Value = serde_json::from_str(&text).unwrap();
+        let cases: Vec<CrossCase> = serde_json::from_value(table["cases"].clone()).unwrap();
+        assert!(cases.len() >= 300, "{} cases", cases.len());
+        let mut refused = 0;
+        for (i, case) in cases.iter().enumerate() {
+            let context: Vec<f64> = case
+                .context_bits
+                .iter()
+                .map(|&b| f64::from_bits(b))
+                .collect();
+            let step = case.frame_step_bits.map(f64::from_bits);
+            let target = f64::from_bits(case.target_bits);
+            let got = case.policy.normalize_with_step(&context, step, target);
+            let what = format!(
+                "case {i}: {} {context:?} step {step:?} target {target}",
+                case.policy
+            );
+            match (&case.expected, got) {
+                (None, Err(_)) => refused += 1,
+                (Some(e), Ok(r)) => {
+                    // Values, not bits: the mirror does not fold -0 into +0 everywhere.
+                    let expected: Vec<f32> =
+                        e.context_bits.iter().map(|&b| f32::from_bits(b)).collect();
+                    assert_eq!(r.context, expected, "{what}");
+                    assert_eq!(r.target, f32::from_bits(e.target_bits), "{what}");
+                }
+                (e, r) => panic!(
+                    "{what}: the mirror accepted it: {}, the engine gave {r:?}",
+                    e.is_some()
+                ),
+            }
+        }
+        assert!(
+            refused > 0 && refused < cases.len() / 4,
+            "{refused} refused"
         );
     }
 
@@ -413,11 +742,29 @@ mod tests {
             })
     }
 
-    fn distinct(context: &[f64]) -> usize {
+    /// A frame step: unknown, typical, extreme, or one the policies refuse.
+    fn step() -> impl Strategy<Value = Option<f64>> {
+        prop_oneof![
+            2 => Just(None),
+            2 => prop::sample::select(vec![1.0 / 30.0, 0.5, 1.0, 2.0, 1e-6, 1e6, 5e-324, 1e300])
+                .prop_map(Some),
+            1 => prop::sample::select(vec![0.0, -1.0, f64::NAN, f64::INFINITY]).prop_map(Some),
+        ]
+    }
+
+    fn sorted_distinct(context: &[f64]) -> Vec<f64> {
         let mut v: Vec<f64> = context.iter().map(|t| t + 0.0).collect();
         v.sort_by(f64::total_cmp);
         v.dedup();
-        v.len()
+        v
+    }
+
+    fn distinct(context: &[f64]) -> usize {
+        sorted_distinct(context).len()
+    }
+
+    fn smallest_gap(sorted: &[f64]) -> Option<f64> {
+        sorted.windows(2).map(|w| w[1] - w[0]).reduce(f64::min)
     }
 
     proptest! {
@@ -444,8 +791,9 @@ mod tests {
         }
 
         #[test]
-        fn accepted_targets_lie_inside_the_context_span((context, target) in case()) {
-            let accepted = TimePolicy::Stable.normalize(&context, target).is_ok();
+        fn accepted_targets_lie_inside_the_context_span((context, target) in case(), step in step()) {
+            let accepted = TimePolicy::Stable.normalize(&context, target).is_ok()
+                || TimePolicy::FrameStep.normalize_with_step(&context, step, target).is_ok();
             let finite: Vec<f64> = context.iter().copied().filter(|t| t.is_finite()).collect();
             let inside = !context.is_empty()
                 && finite.len() == context.len()
@@ -464,9 +812,12 @@ mod tests {
             })
         ) {
             let permuted: Vec<f64> = order.iter().map(|&i| context[i]).collect();
-            for policy in [TimePolicy::Stable, TimePolicy::Reference] {
-                let a = policy.normalize(&context, target);
-                let b = policy.normalize(&permuted, target);
+            for (policy, step) in TimePolicy::ALL
+                .into_iter()
+                .flat_map(|p| [(p, None), (p, Some(0.25))])
+            {
+                let a = policy.normalize_with_step(&context, step, target);
+                let b = policy.normalize_with_step(&permuted, step, target);
                 prop_assert_eq!(a.is_ok(), b.is_ok());
                 if let (Ok(a), Ok(b)) = (a, b) {
                     prop_assert_eq!(a.target.to_bits(), b.target.to_bits());
@@ -492,6 +843,77 @@ mod tests {
             let s = TimePolicy::Stable.normalize(&context, target).unwrap();
             let r = TimePolicy::Reference.normalize(&context, target).unwrap();
             prop_assert_eq!(s, r);
+        }
+
+        #[test]
+        fn frame_step_output_is_an_error_or_finite_and_bounded(
+            (context, target) in case(),
+            step in step(),
+        ) {
+            if let Ok(r) = TimePolicy::FrameStep.normalize_with_step(&context, step, target) {
+                let sorted = sorted_distinct(&context);
+                let span = sorted[sorted.len() - 1] - sorted[0];
+                let used = step.or_else(|| smallest_gap(&sorted));
+                let bound = used.map_or(0.0, |s| (span / s) as f32);
+                prop_assert_eq!(r.context.len(), context.len());
+                prop_assert!(r.target.is_finite() && (0.0..=1.0).contains(&r.target));
+                for v in r.context {
+                    prop_assert!(v.is_finite() && (0.0..=bound).contains(&v), "{} > {}", v, bound);
+                }
+            }
+        }
+
+        #[test]
+        fn frame_step_without_a_step_is_frame_step_with_the_smallest_gap(
+            (context, target) in case(),
+        ) {
+            let gap = smallest_gap(&sorted_distinct(&context));
+            let a = TimePolicy::FrameStep.normalize(&context, target);
+            let b = TimePolicy::FrameStep.normalize_with_step(&context, gap, target);
+            prop_assert_eq!(a.ok(), b.ok());
+        }
+
+        #[test]
+        fn frame_step_equals_reference_for_frame_indices_from_one_frame_after_the_first(
+            mut frames in prop::collection::vec(0u32..100_000, 2..20),
+            pick in 0.0..=1.0f64,
+        ) {
+            frames.sort_unstable();
+            frames.dedup();
+            prop_assume!(frames.len() >= 2);
+            let context: Vec<f64> = frames.iter().map(|&f| f64::from(f)).collect();
+            let (m, big_m) = (context[0], context[context.len() - 1]);
+            let target = (m + 1.0 + pick * (big_m - m - 1.0)).round().clamp(m + 1.0, big_m);
+            let f = TimePolicy::FrameStep.normalize_with_step(&context, Some(1.0), target).unwrap();
+            let r = TimePolicy::Reference.normalize(&context, target).unwrap();
+            prop_assert_eq!(f, r);
+        }
+
+        #[test]
+        fn frame_step_moves_little_when_the_target_moves_little(
+            mut frames in prop::collection::vec(0u32..1000, 2..12),
+            steps in 1u32..60,
+            pick in 0.0..=1.0f64,
+        ) {
+            frames.sort_unstable();
+            frames.dedup();
+            prop_assume!(frames.len() >= 2);
+            let context: Vec<f64> = frames.iter().map(|&f| f64::from(f) / 30.0).collect();
+            let (m, big_m) = (context[0], context[context.len() - 1]);
+            let step = f64::from(steps) / 30.0;
+            let delta = 1e-9;
+            let target = (m + pick * (big_m - m)).min(big_m - delta);
+            let a = TimePolicy::FrameStep.normalize_with_step(&context, Some(step), target).unwrap();
+            let b = TimePolicy::FrameStep
+                .normalize_with_step(&context, Some(step), target + delta)
+                .unwrap();
+            // |d rel / d target| <= span / step^2; plus f32 rounding of values up to span / step.
+            let bound = (big_m - m) / step;
+            let tolerance = (bound / step * delta + bound * 1e-6) as f32;
+            for (x, y) in a.context.iter().zip(&b.context) {
+                prop_assert!((x - y).abs() <= tolerance, "{} vs {}", x, y);
+            }
+            prop_assert!((a.target - b.target).abs() <= tolerance);
         }
     }
 }

@@ -175,7 +175,7 @@ fn stable_and_reference_policies_agree_past_the_first_gap_and_differ_inside_it()
     let reference = TimePolicy::Reference
         .normalize_all(encoding.times(), &late)
         .unwrap();
-    let stable = engine().decode(&encoding, &late).unwrap();
+    let stable = stable_engine().decode(&encoding, &late).unwrap();
     let exact = engine().decode_normalized(&encoding, &reference).unwrap();
     assert_eq!(canonical(&stable), canonical(&exact));
 
@@ -183,8 +183,73 @@ fn stable_and_reference_policies_agree_past_the_first_gap_and_differ_inside_it()
         .normalize_all(encoding.times(), &[1.0])
         .unwrap();
     let reference_early = engine().decode_normalized(&encoding, &early).unwrap();
-    let stable_early = engine().decode(&encoding, &[1.0]).unwrap();
+    let stable_early = stable_engine().decode(&encoding, &[1.0]).unwrap();
     assert!(max_abs_diff(&canonical(&reference_early), &canonical(&stable_early)) > 1e-4);
+}
+
+#[test]
+fn a_package_that_declares_no_policy_decodes_with_frame_step_and_options_override_it() {
+    if skip_reason().is_some() {
+        return;
+    }
+    assert_eq!(engine().manifest().time_policy, None);
+    assert_eq!(engine().time_policy(), TimePolicy::FrameStep);
+    assert_eq!(stable_engine().time_policy(), TimePolicy::Stable);
+    // Inside stable's first interval, with the source's frame step known (30 fps), frame-step
+    // is the reference: what the official weights were trained on.
+    let encoding = encode_default().with_frame_step(Some(1.0 / 30.0)).unwrap();
+    let targets = [1.0, 0.5, 3.0];
+    let reference = TimePolicy::Reference
+        .normalize_all(encoding.times(), &targets)
+        .unwrap();
+    let exact = engine().decode_normalized(&encoding, &reference).unwrap();
+    let frame_step = engine().decode(&encoding, &targets).unwrap();
+    assert_eq!(canonical(&frame_step), canonical(&exact));
+    let stable = stable_engine().decode(&encoding, &targets[..1]).unwrap();
+    assert!(max_abs_diff(&canonical(&stable), &canonical(&exact[..1])) > 1e-4);
+    // Without a frame step, evenly spaced context frames: the fallback gap is the mean spacing.
+    assert_eq!(
+        canonical(&engine().decode(&encode_default(), &[0.0, 1.0]).unwrap()),
+        canonical(
+            &stable_engine()
+                .decode(&encode_default(), &[0.0, 1.0])
+                .unwrap()
+        )
+    );
+}
+
+#[test]
+fn a_package_that_declares_stable_decodes_with_stable() {
+    if skip_reason().is_some() {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("c4g-declares-stable-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for f in ["encoder.onnx", "decoder.onnx", "feature_decoder.onnx"] {
+        std::fs::copy(fixture_dir().join(f), dir.join(f)).unwrap();
+    }
+    let mut manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(fixture_dir().join("model.json")).unwrap())
+            .unwrap();
+    manifest["time_policy"] = "stable".into();
+    std::fs::write(dir.join("model.json"), manifest.to_string()).unwrap();
+    let declared = Engine::load(&dir, EngineOptions::default()).unwrap();
+    let overridden = Engine::load(
+        &dir,
+        EngineOptions {
+            time_policy: Some(TimePolicy::FrameStep),
+            ..EngineOptions::default()
+        },
+    )
+    .unwrap();
+    std::fs::remove_dir_all(&dir).unwrap();
+    assert_eq!(declared.time_policy(), TimePolicy::Stable);
+    assert_eq!(overridden.time_policy(), TimePolicy::FrameStep);
+    let encoding = encode_default().with_frame_step(Some(1.0 / 30.0)).unwrap();
+    assert_eq!(
+        declared.normalize(&encoding, &[1.0]).unwrap(),
+        TimePolicy::Stable.normalize_all(&TIMES, &[1.0]).unwrap()
+    );
 }
 
 #[test]

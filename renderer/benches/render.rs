@@ -1,9 +1,15 @@
 //! Render time of the rasterizers: 2K (one C4G timestamp), 100K and 1M random Gaussians at
-//! 256², 512² and 1920×1080; the CPU rasterizer always, the wgpu one too with the `gpu` feature
-//! (one run, so the two can be compared).
+//! 256², 512² and 1920×1080, with each footprint (ids `<n>/<size>` for the ellipse,
+//! `<n>_3dgs/<size>` for the 3DGS tiles); the CPU rasterizer always (group `cpu_render`), the wgpu
+//! one too with the `gpu` feature (`gpu_render`; one run, so all can be compared).
 //!
 //!     cargo bench -p c4g-renderer --bench render
 //!     cargo bench -p c4g-renderer --features gpu --bench render
+//!     cargo bench -p c4g-renderer --features gpu --bench render -- 'render/2000(_3dgs)?/'
+//!     C4G_BENCH_BEST_OF=5 cargo bench -p c4g-renderer --features gpu --bench render
+//!
+//! `C4G_BENCH_BEST_OF=N` prints the fastest of N renders per case instead, the two footprints
+//! alternating: what compares them on a machine that other work shares.
 //!
 //! The scene is plausible rather than adversarial: Gaussians fill a frustum slab at depth 2..6 in
 //! front of a camera with C4G's default intrinsics, nearly all in view, anisotropic, randomly
@@ -13,6 +19,7 @@
 
 use std::time::Duration;
 
+use c4g_renderer::raster::Footprint;
 use c4g_renderer::{
     Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, Rasterizer, RenderOptions,
 };
@@ -80,28 +87,73 @@ fn scene(n: usize) -> GaussianSet {
     GaussianSet::new(p, s, q, o, c).unwrap()
 }
 
+/// Gaussians and image sizes of the cases.
+const COUNTS: [usize; 3] = [2_000, 100_000, 1_000_000];
+const SIZES: [(u32, u32); 3] = [(256, 256), (512, 512), (1920, 1080)];
+/// The footprints, with the suffix of their benchmark ids.
+const FOOTPRINTS: [(Footprint, &str); 2] =
+    [(Footprint::Ellipse, ""), (Footprint::Tiles3dgs, "_3dgs")];
+
+fn camera(w: u32, h: u32) -> Camera {
+    Camera::from_normalized(NormalizedIntrinsics::C4G_DEFAULT, w, h, Affine3A::IDENTITY).unwrap()
+}
+
+fn options(footprint: Footprint) -> RenderOptions {
+    RenderOptions {
+        footprint,
+        ..RenderOptions::default()
+    }
+}
+
 fn bench(c: &mut Criterion, group_name: &str, rasterizer: &dyn Rasterizer) {
-    let options = RenderOptions::default();
     let mut group = c.benchmark_group(group_name);
-    for n in [2_000usize, 100_000, 1_000_000] {
+    for n in COUNTS {
         let set = scene(n);
-        for (w, h) in [(256u32, 256u32), (512, 512), (1920, 1080)] {
-            let camera = Camera::from_normalized(
-                NormalizedIntrinsics::C4G_DEFAULT,
-                w,
-                h,
-                Affine3A::IDENTITY,
-            )
-            .unwrap();
-            group.throughput(Throughput::Elements(n as u64));
-            group.bench_with_input(
-                BenchmarkId::new(format!("{n}"), format!("{w}x{h}")),
-                &(&set, &camera),
-                |b, (set, camera)| b.iter(|| rasterizer.render(set, camera, &options).unwrap()),
-            );
+        for (w, h) in SIZES {
+            let camera = camera(w, h);
+            // The footprints one after the other on each case, so that a busy machine weighs on
+            // both alike.
+            for (footprint, suffix) in FOOTPRINTS {
+                let options = options(footprint);
+                group.throughput(Throughput::Elements(n as u64));
+                group.bench_with_input(
+                    BenchmarkId::new(format!("{n}{suffix}"), format!("{w}x{h}")),
+                    &(&set, &camera),
+                    |b, (set, camera)| b.iter(|| rasterizer.render(set, camera, &options).unwrap()),
+                );
+            }
         }
     }
     group.finish();
+}
+
+/// With `C4G_BENCH_BEST_OF=N`, instead of criterion's statistics: the fastest of N renders of
+/// every case, the footprints alternating render by render, as a table. On a machine other work
+/// shares, a spike of load then costs one render, not the estimate.
+fn best_of(name: &str, rasterizer: &dyn Rasterizer, reps: usize) {
+    eprintln!("{name}: the fastest of {reps} renders, the footprints alternating");
+    eprintln!("| Gaussians | size | ellipse | 3dgs | 3dgs / ellipse |");
+    for n in COUNTS {
+        let set = scene(n);
+        for (w, h) in SIZES {
+            let camera = camera(w, h);
+            let mut best = [f64::INFINITY; 2];
+            for _ in 0..reps {
+                for (slot, (footprint, _)) in best.iter_mut().zip(FOOTPRINTS) {
+                    let start = std::time::Instant::now();
+                    std::hint::black_box(rasterizer.render(&set, &camera, &options(footprint)))
+                        .unwrap();
+                    *slot = slot.min(start.elapsed().as_secs_f64());
+                }
+            }
+            eprintln!(
+                "| {n} | {w}x{h} | {:.1} ms | {:.1} ms | {:.2} |",
+                best[0] * 1e3,
+                best[1] * 1e3,
+                best[1] / best[0]
+            );
+        }
+    }
 }
 
 fn render(c: &mut Criterion) {
@@ -111,12 +163,20 @@ fn render(c: &mut Criterion) {
         machine(),
         cpu.threads()
     );
-    bench(c, "cpu_render", &cpu);
+    let reps = std::env::var("C4G_BENCH_BEST_OF")
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok())
+        .filter(|&n| n > 0);
+    let mut run = |name: &str, rasterizer: &dyn Rasterizer| match reps {
+        Some(reps) => best_of(name, rasterizer, reps),
+        None => bench(c, name, rasterizer),
+    };
+    run("cpu_render", &cpu);
     #[cfg(feature = "gpu")]
     match c4g_renderer::GpuRasterizer::new() {
         Ok(gpu) => {
             eprintln!("wgpu adapter: {}", gpu.adapter());
-            bench(c, "gpu_render", &gpu);
+            run("gpu_render", &gpu);
         }
         Err(e) => eprintln!("gpu_render skipped: {e}"),
     }

@@ -1,8 +1,12 @@
-//! The CPU rasterizer against the float64 reference's renders of the fixture scenes.
+//! The CPU rasterizer against the float64 reference's renders of the fixture scenes, with both
+//! footprints.
 //!
 //! Tolerances (the fixture scenes keep clear of the forward model's steps, so f32 arithmetic is
 //! the only difference): RGB, alpha and features within 2e-3 absolute; alpha-weighted and expected
-//! depth within 1e-3 relative where the reference alpha exceeds 0.5.
+//! depth within 1e-3 relative where the reference alpha exceeds 0.5. The same for the 3DGS
+//! footprint: its scenes also keep clear of its own steps (a tile range within 1e-3 pixels of
+//! moving, a quadratic form near rounding negative), and the CPU rasterizer computes the tile range
+//! in f64 like the reference.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 mod common;
@@ -43,6 +47,18 @@ fn stack_matches_the_reference() {
 #[test]
 fn background_matches_the_reference() {
     check("background");
+}
+
+#[test]
+fn large_matches_the_reference() {
+    check("large");
+}
+
+#[test]
+fn every_scene_matches_the_reference_with_the_3dgs_footprint() {
+    for name in SCENES_3DGS {
+        check(name);
+    }
 }
 
 #[test]

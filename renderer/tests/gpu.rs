@@ -1,11 +1,13 @@
-//! The wgpu rasterizer against the float64 reference (fixture scenes), against the CPU rasterizer
-//! (random scenes) and at the extremes of its inputs and of the device's limits.
+//! The wgpu rasterizer against the float64 reference (fixture scenes, both footprints), against
+//! the CPU rasterizer (random scenes) and at the extremes of its inputs and of the device's limits.
 //!
 //! Tolerances: on the fixture scenes, which keep clear of the forward model's steps, the CPU
 //! rasterizer's: RGB, alpha and features within 2e-3 absolute, depth and expected depth within
-//! 1e-3 relative where alpha > 0.5. Random scenes do not keep clear of the steps (the 3-sigma cut,
-//! the 1/255 cut, the transmittance stop), where an f32 rounding may flip one pixel by up to ~1e-2;
-//! there 99.9 % of the values must agree within 2e-3 and all within 5e-2.
+//! 1e-3 relative where alpha > 0.5 (for the 3DGS footprint too: its scenes keep its tile ranges
+//! 1e-3 pixels or more from moving, which covers f32 rounding of the radius and the tile ends).
+//! Random scenes do not keep clear of the steps (the 3-sigma cut, the 1/255 cut, the transmittance
+//! stop, a 3DGS tile end), where an f32 rounding may flip one pixel (a 3DGS tile end: a row of
+//! them) by up to ~1e-2; there 99.9 % of the values must agree within 2e-3 and all within 5e-2.
 //!
 //! Without an adapter these tests print "skipped: ..." and pass, unless `CI` is set (CI installs
 //! lavapipe, so there a missing adapter is a failure). `C4G_WGPU_ADAPTER` picks the adapter.
@@ -16,6 +18,7 @@ mod common;
 
 use std::sync::OnceLock;
 
+use c4g_renderer::raster::Footprint;
 use c4g_renderer::raster::gpu::{AdapterChoice, GpuOptions};
 use c4g_renderer::{
     Camera, CpuRasterizer, FeatureBlock, GaussianSet, GpuRasterizer, Image, Intrinsics,
@@ -237,6 +240,18 @@ fn background_matches_the_reference() {
     check_scene("background");
 }
 
+#[test]
+fn large_matches_the_reference() {
+    check_scene("large");
+}
+
+#[test]
+fn every_scene_matches_the_reference_with_the_3dgs_footprint() {
+    for name in SCENES_3DGS {
+        check_scene(name);
+    }
+}
+
 // ---- random scenes, against the CPU rasterizer ---------------------------------------------
 
 #[test]
@@ -254,6 +269,29 @@ fn random_scenes_match_the_cpu_rasterizer() {
             &format!("seed {seed}"),
             &render(gpu, &set, &cam),
             &cpu(&set, &cam),
+        );
+    }
+}
+
+#[test]
+fn random_scenes_match_the_cpu_rasterizer_with_the_3dgs_footprint() {
+    let Some(gpu) = gpu() else { return };
+    let options = RenderOptions {
+        footprint: Footprint::Tiles3dgs,
+        ..RenderOptions::default()
+    };
+    for (seed, n, size, scale, channels) in [
+        (1, 2000, (128, 96), (0.005, 0.08), 0),
+        (2, 500, (200, 120), (0.02, 0.3), 5),
+        (3, 3000, (96, 96), (0.001, 0.02), 9),
+        (4, 50, (64, 64), (0.2, 1.0), 1),
+    ] {
+        let set = random_set(n, seed, scale, channels);
+        let cam = camera(size.0, size.1);
+        assert_close_to_cpu(
+            &format!("3dgs seed {seed}"),
+            &gpu.render(&set, &cam, &options).unwrap(),
+            &CpuRasterizer::new().render(&set, &cam, &options).unwrap(),
         );
     }
 }
@@ -283,6 +321,20 @@ fn bands_and_chunks_change_nothing() {
     // 256 KiB buffers: bands of one tile row, each with more pairs than one chunk holds.
     let small = small_gpu(256 << 10).unwrap();
     assert_eq!(render(&small, &set, &cam), whole);
+}
+
+#[test]
+fn bands_and_chunks_change_nothing_with_the_3dgs_footprint() {
+    let Some(gpu) = gpu() else { return };
+    let options = RenderOptions {
+        footprint: Footprint::Tiles3dgs,
+        ..RenderOptions::default()
+    };
+    let set = random_set(2000, 12, (0.3, 1.5), 3);
+    let cam = camera(320, 240);
+    let whole = gpu.render(&set, &cam, &options).unwrap();
+    let small = small_gpu(256 << 10).unwrap();
+    assert_eq!(small.render(&set, &cam, &options).unwrap(), whole);
 }
 
 #[test]

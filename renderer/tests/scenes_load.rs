@@ -3,11 +3,12 @@
 
 mod common;
 
+use c4g_renderer::raster::Footprint;
 use common::*;
 
 #[test]
 fn every_fixture_scene_loads_with_consistent_shapes() {
-    for name in SCENES {
+    for name in SCENES.into_iter().chain(SCENES_3DGS) {
         let s = load_scene(name);
         let (w, h) = (s.camera.width() as usize, s.camera.height() as usize);
         assert_eq!(s.expected.rgb.len(), w * h * 3, "{name}");
@@ -17,6 +18,12 @@ fn every_fixture_scene_loads_with_consistent_shapes() {
             assert_eq!(img.channels, block.width(), "{name}");
             assert_eq!(img.values.len(), w * h * img.channels, "{name}");
         }
+        let footprint = if name.ends_with("-3dgs") {
+            Footprint::Tiles3dgs
+        } else {
+            Footprint::Ellipse
+        };
+        assert_eq!(s.options.footprint, footprint, "{name}");
         let d = compare(&s.expected, &s.expected);
         assert_eq!(d.rgb_max_abs, 0.0);
         assert_eq!(d.features_max_abs, 0.0);

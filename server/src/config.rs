@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use c4g_engine::{EngineOptions, ExecutionProvider, TimePolicy};
+use c4g_renderer::raster::Footprint;
 use clap::{Parser, ValueEnum};
 
 /// Serve a C4G model package over HTTP.
@@ -29,8 +30,9 @@ pub struct Config {
     /// CUDA device ordinal (with `--device cuda`).
     #[arg(long, env = "C4G_CUDA_DEVICE", default_value_t = 0)]
     pub cuda_device: i32,
-    /// How timestamps are normalised before the decoder (docs/time-policy.md).
-    #[arg(long, env = "C4G_TIME_POLICY", value_enum, default_value_t = PolicyArg::Stable)]
+    /// How timestamps are normalised before the decoder (docs/time-policy.md): `package` uses
+    /// the policy the model declares (frame-step when it declares none).
+    #[arg(long, env = "C4G_TIME_POLICY", value_enum, default_value_t = PolicyArg::Package)]
     pub time_policy: PolicyArg,
     /// Where clips live on disk (metadata, encoder features, context frames), so that a restart
     /// serves them without encoding again.
@@ -100,6 +102,11 @@ pub struct Config {
     /// hardware GPU, the CPU rasterizer otherwise: Mesa's software Vulkan is slower than it).
     #[arg(long, env = "C4G_RENDERER", value_enum, default_value_t = RendererArg::Auto)]
     pub renderer: RendererArg,
+    /// Which pixels a Gaussian reaches in renders: `package` (the footprint the package's
+    /// model.json declares, `ellipse` when it declares none), `ellipse` (3 sigma) or `3dgs` (every
+    /// pixel of the original 3DGS rasterizer's tiles, what the official weights were trained with).
+    #[arg(long, env = "C4G_FOOTPRINT", value_enum, default_value_t = FootprintArg::Package)]
+    pub footprint: FootprintArg,
     /// Seconds a refinement worker may go without reporting progress before its job is taken
     /// back (retried, or failed when out of attempts).
     #[arg(long, env = "C4G_JOB_LEASE_S", default_value_t = 60.0)]
@@ -126,6 +133,18 @@ pub enum RendererArg {
     Gpu,
 }
 
+/// The rasterizer [`Footprint`] as a command-line value.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum FootprintArg {
+    /// What the package declares (`rasterizer.footprint` in model.json; absent: the ellipse).
+    Package,
+    /// The pixels within 3 sigma.
+    Ellipse,
+    /// Every pixel of the original 3DGS rasterizer's tiles.
+    #[value(name = "3dgs")]
+    Tiles3dgs,
+}
+
 /// [`ExecutionProvider`] as a command-line value.
 #[derive(Debug, Clone, Copy, ValueEnum)]
 pub enum DeviceArg {
@@ -138,7 +157,12 @@ pub enum DeviceArg {
 /// [`TimePolicy`] as a command-line value.
 #[derive(Debug, Clone, Copy, ValueEnum)]
 pub enum PolicyArg {
-    /// Bounded and defined over the whole context span; equal to the reference past the first gap.
+    /// The policy the package declares in model.json (frame-step when it declares none).
+    Package,
+    /// Equal to the reference from one source frame after the first context frame; bounded.
+    FrameStep,
+    /// Bounded and defined over the whole context span; equal to the reference past the first
+    /// mean spacing (what c4g-tiny was trained with).
     Stable,
     /// The public reference's normalisation, exactly (for parity checks).
     Reference,
@@ -214,6 +238,15 @@ impl Config {
             .unwrap_or(DEFAULT_MAX_QUEUED_WORK)
     }
 
+    /// The footprint renders use: `declared` (the package's) unless `--footprint` names one.
+    pub fn footprint(&self, declared: Footprint) -> Footprint {
+        match self.footprint {
+            FootprintArg::Package => declared,
+            FootprintArg::Ellipse => Footprint::Ellipse,
+            FootprintArg::Tiles3dgs => Footprint::Tiles3dgs,
+        }
+    }
+
     /// The engine options these settings ask for.
     pub fn engine_options(&self) -> EngineOptions {
         EngineOptions {
@@ -228,8 +261,10 @@ impl Config {
                 ..c4g_engine::SessionOptions::default()
             },
             time_policy: match self.time_policy {
-                PolicyArg::Stable => TimePolicy::Stable,
-                PolicyArg::Reference => TimePolicy::Reference,
+                PolicyArg::Package => None,
+                PolicyArg::FrameStep => Some(TimePolicy::FrameStep),
+                PolicyArg::Stable => Some(TimePolicy::Stable),
+                PolicyArg::Reference => Some(TimePolicy::Reference),
             },
             ..EngineOptions::default()
         }
@@ -245,6 +280,25 @@ mod tests {
     }
 
     #[test]
+    fn the_footprint_is_the_package_s_unless_a_flag_names_one() {
+        for declared in [Footprint::Ellipse, Footprint::Tiles3dgs] {
+            let package = parse(&["--footprint", "package"]);
+            assert_eq!(package.footprint(declared), declared);
+            let ellipse = parse(&["--footprint", "ellipse"]);
+            assert_eq!(ellipse.footprint(declared), Footprint::Ellipse);
+            let tiles = parse(&["--footprint", "3dgs"]);
+            assert_eq!(tiles.footprint(declared), Footprint::Tiles3dgs);
+        }
+        if std::env::var_os("C4G_FOOTPRINT").is_none() {
+            assert_eq!(parse(&[]).footprint, FootprintArg::Package);
+        }
+        assert!(
+            Config::try_parse_from(["c4g-server", "--footprint", "tiles"]).is_err(),
+            "an unknown footprint is refused"
+        );
+    }
+
+    #[test]
     fn work_slots_default_to_one_per_core_and_a_queue_of_256() {
         // Only the flags are under test here: the environment of the test process is not.
         let config = parse(&[]);
@@ -253,6 +307,22 @@ mod tests {
         }
         assert_eq!(config.max_concurrent_work(), 0);
         assert_eq!(config.max_queued_work(), DEFAULT_MAX_QUEUED_WORK);
+    }
+
+    #[test]
+    fn the_time_policy_defaults_to_the_packages_and_can_be_named() {
+        if std::env::var_os("C4G_TIME_POLICY").is_none() {
+            assert_eq!(parse(&[]).engine_options().time_policy, None);
+        }
+        for (arg, policy) in [
+            ("package", None),
+            ("frame-step", Some(TimePolicy::FrameStep)),
+            ("stable", Some(TimePolicy::Stable)),
+            ("reference", Some(TimePolicy::Reference)),
+        ] {
+            let options = parse(&["--time-policy", arg]).engine_options();
+            assert_eq!(options.time_policy, policy, "{arg}");
+        }
     }
 
     #[test]

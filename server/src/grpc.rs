@@ -6,6 +6,7 @@ use std::sync::Arc;
 
 use axum::http::HeaderMap;
 use bytes::BytesMut;
+use c4g_engine::{Encoding, KeyframeTrack, Keyframes};
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_server::{C4g, C4gServer};
 use c4g_renderer::Trajectory;
@@ -17,6 +18,7 @@ use tonic::{Request, Response, Status, Streaming};
 use crate::camera::{CameraSpec, IntrinsicsSpec};
 use crate::image_formats::{ImageFormat, encode_image};
 use crate::intake::{IntakeOptions, Media, MediaKind};
+use crate::keyframes::KeyframesSpec;
 use crate::service::{PathRequest, Service, ViewRequest};
 use crate::store::ClipRecord;
 use crate::wire::{self, Precision};
@@ -128,11 +130,63 @@ fn image_format(format: i32) -> Result<ImageFormat, ServiceError> {
     }
 }
 
+/// The REST shape of a `Keyframes` message; the service checks it.
+fn keyframes_spec(
+    keyframes: Option<&pb::Keyframes>,
+) -> Result<Option<KeyframesSpec>, ServiceError> {
+    use pb::keyframes::Mode;
+    let Some(keyframes) = keyframes else {
+        return Ok(None);
+    };
+    let spec = match &keyframes.mode {
+        None => {
+            return Err(ServiceError::invalid(
+                "Keyframes needs its mode: every_s, count or adaptive (leave keyframes unset to \
+                 decode every time exactly)",
+            ));
+        }
+        Some(Mode::EveryS(seconds)) => KeyframesSpec {
+            every_s: Some(*seconds),
+            ..KeyframesSpec::default()
+        },
+        Some(Mode::Count(n)) => KeyframesSpec {
+            count: Some(*n as usize),
+            ..KeyframesSpec::default()
+        },
+        Some(Mode::Adaptive(adaptive)) => KeyframesSpec {
+            tolerance: Some(adaptive.tolerance),
+            color_tolerance: adaptive.color_tolerance,
+            max: nonzero(adaptive.max).map(|n| n as usize),
+            min_interval_s: Some(adaptive.min_interval_s),
+            ..KeyframesSpec::default()
+        },
+    };
+    Ok(Some(spec))
+}
+
 fn nonzero(v: u32) -> Option<u32> {
     (v != 0).then_some(v)
 }
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
+
+/// The keyframes of a stream's times, decoded on a work slot; `None` when `keyframes` decodes
+/// every time exactly (the stream then decodes chunk by chunk as it goes).
+async fn keyframe_track(
+    service: &Arc<Service>,
+    encoding: &Arc<Encoding>,
+    times: &[f64],
+    keyframes: Keyframes,
+) -> Result<Option<Arc<KeyframeTrack>>, ServiceError> {
+    if !keyframes.interpolates(times) {
+        return Ok(None);
+    }
+    let (encoding, times) = (encoding.clone(), times.to_vec());
+    let track = service
+        .work(move |service| service.keyframe_track_now(&encoding, &times, &keyframes))
+        .await?;
+    Ok(Some(Arc::new(track)))
+}
 
 #[tonic::async_trait]
 impl C4g for Grpc {
@@ -228,9 +282,10 @@ impl C4g for Grpc {
     ) -> Result<Response<pb::DecodeResponse>, Status> {
         let request = request.into_inner();
         let precision: Precision = wire::precision_from_proto(request.precision());
+        let keyframes = keyframes_spec(request.keyframes.as_ref())?;
         let frames = self
             .service()?
-            .decode(&request.clip_id, request.times)
+            .decode(&request.clip_id, request.times, keyframes)
             .await?;
         Ok(Response::new(pb::DecodeResponse {
             frames: frames
@@ -281,10 +336,21 @@ impl C4g for Grpc {
         let times: Vec<f64> = (0..count)
             .map(|i| (start + step * i as f64).min(end))
             .collect();
+        let keyframes =
+            service.keyframes(keyframes_spec(request.keyframes.as_ref())?.as_ref(), &times)?;
         let encoding = service.store.encoding(&record.id).await?;
         let precision: Precision = wire::precision_from_proto(request.precision());
         let (tx, rx) = mpsc::channel(STREAM_AHEAD);
         tokio::spawn(async move {
+            // With keyframes, those over the whole range are decoded first; each chunk is then
+            // interpolated from them.
+            let track = match keyframe_track(&service, &encoding, &times, keyframes).await {
+                Ok(track) => track,
+                Err(e) => {
+                    let _ = tx.send(Err(e.into())).await;
+                    return;
+                }
+            };
             // Decode in the engine's batch size; a send waits while the client is behind.
             let batch = service
                 .engine
@@ -293,8 +359,12 @@ impl C4g for Grpc {
             for chunk in times.chunks(batch) {
                 let chunk = chunk.to_vec();
                 let encoding = encoding.clone();
+                let track = track.clone();
                 let frames = service
-                    .work(move |service| service.decode_now(&encoding, &chunk))
+                    .work(move |service| match &track {
+                        Some(track) => service.interpolate_now(track, &chunk),
+                        None => service.decode_now(&encoding, &chunk),
+                    })
                     .await;
                 match frames {
                     Ok(frames) => {
@@ -373,18 +443,41 @@ impl C4g for Grpc {
         };
         let record = service.store.get(&request.clip_id)?;
         let plan = service.plan_path(&record, &path)?;
+        let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
+        let keyframes =
+            service.keyframes(keyframes_spec(request.keyframes.as_ref())?.as_ref(), &times)?;
         let encoding = service.store.encoding(&record.id).await?;
         let (tx, rx) = mpsc::channel(STREAM_AHEAD);
         let bg = path.background;
         tokio::spawn(async move {
+            let track = match keyframe_track(&service, &encoding, &times, keyframes).await {
+                Ok(track) => track,
+                Err(e) => {
+                    let _ = tx.send(Err(e.into())).await;
+                    return;
+                }
+            };
             for (t, camera) in plan {
                 let encoding = encoding.clone();
+                let track = track.clone();
                 let result = service
                     .work(move |service| {
-                        let image = service.render_path_now(&encoding, &[(t, camera)], bg)?;
-                        let image = image.into_iter().next().ok_or_else(|| {
-                            ServiceError::Internal("the renderer returned no image".into())
-                        })?;
+                        let image = match &track {
+                            Some(track) => {
+                                let set = service.interpolate_now(track, &[t])?.pop();
+                                let (_, set) = set.ok_or_else(|| {
+                                    ServiceError::Internal("the interpolation gave no set".into())
+                                })?;
+                                service.render_now(&set, &camera, bg)?
+                            }
+                            None => service
+                                .render_path_now(&encoding, &[(t, camera)], bg)?
+                                .into_iter()
+                                .next()
+                                .ok_or_else(|| {
+                                    ServiceError::Internal("the renderer returned no image".into())
+                                })?,
+                        };
                         Ok(pb::RenderedImage {
                             time: t,
                             width: image.width,

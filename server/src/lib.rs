@@ -10,6 +10,7 @@
 //! | [`jobs`] | refinement jobs: durable records, the queue, worker leases |
 //! | `refine` | refinement requests, and the video a worker gets |
 //! | `camera` | cameras as clients state them |
+//! | `keyframes` | keyframed decoding as clients ask for it, checked against the limits |
 //! | `renderer` | the rasterizer choice |
 //! | `image_formats` | what renders answer with: PNG, raw depth and alpha, MP4 |
 //! | `service_error` | [`ServiceError`]: what went wrong, in domain words, and its kinds |
@@ -35,6 +36,7 @@ mod grpc;
 mod image_formats;
 pub mod intake;
 pub mod jobs;
+mod keyframes;
 pub mod metrics;
 mod refine;
 mod renderer;

@@ -1,6 +1,8 @@
 //! The rasterizer the service renders with: the CPU one, or wgpu's when built with the `gpu`
-//! feature and asked for (or, with `auto`, when a hardware GPU is present).
+//! feature and asked for (or, with `auto`, when a hardware GPU is present), and the footprint it
+//! renders with (the package's, unless `--footprint` says otherwise).
 
+use c4g_renderer::raster::Footprint;
 use c4g_renderer::{Camera, CpuRasterizer, GaussianSet, Image, Rasterizer, RenderOptions};
 
 use crate::ServiceError;
@@ -10,20 +12,21 @@ use crate::config::RendererArg;
 pub struct Renderer {
     inner: Box<dyn Rasterizer + Send + Sync>,
     name: String,
+    footprint: Footprint,
 }
 
 impl Renderer {
-    /// The rasterizer `choice` asks for. `auto` takes wgpu only on a hardware GPU: on a CPU,
-    /// the CPU rasterizer is faster than wgpu on Mesa's software Vulkan.
-    pub fn new(choice: RendererArg) -> Result<Self, String> {
+    /// The rasterizer `choice` asks for, rendering with `footprint`. `auto` takes wgpu only on a
+    /// hardware GPU: on a CPU, the CPU rasterizer is faster than wgpu on Mesa's software Vulkan.
+    pub fn new(choice: RendererArg, footprint: Footprint) -> Result<Self, String> {
         #[cfg(feature = "gpu")]
         {
             use c4g_renderer::GpuRasterizer;
             match (choice, GpuRasterizer::new()) {
-                (RendererArg::Gpu, Ok(gpu)) => return Ok(Self::gpu(gpu)),
+                (RendererArg::Gpu, Ok(gpu)) => return Ok(Self::gpu(gpu, footprint)),
                 (RendererArg::Gpu, Err(e)) => return Err(format!("no wgpu adapter: {e}")),
                 (RendererArg::Auto, Ok(gpu)) if !gpu.adapter().software => {
-                    return Ok(Self::gpu(gpu));
+                    return Ok(Self::gpu(gpu, footprint));
                 }
                 _ => {}
             }
@@ -35,15 +38,17 @@ impl Renderer {
         Ok(Self {
             inner: Box::new(CpuRasterizer::new()),
             name: "cpu".into(),
+            footprint,
         })
     }
 
     #[cfg(feature = "gpu")]
-    fn gpu(gpu: c4g_renderer::GpuRasterizer) -> Self {
+    fn gpu(gpu: c4g_renderer::GpuRasterizer, footprint: Footprint) -> Self {
         let name = format!("wgpu ({})", gpu.adapter().name);
         Self {
             inner: Box::new(gpu),
             name,
+            footprint,
         }
     }
 
@@ -62,6 +67,7 @@ impl Renderer {
         let options = RenderOptions {
             background,
             features: false,
+            footprint: self.footprint,
             ..RenderOptions::default()
         };
         Ok(self.inner.render(set, camera, &options)?)

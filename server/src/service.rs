@@ -11,7 +11,7 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use c4g_engine::{ContextFrame, Encoding, Engine};
+use c4g_engine::{ContextFrame, Encoding, Engine, KeyframeTrack, Keyframes};
 use c4g_renderer::{Camera, GaussianSet, Image, Trajectory};
 use sha2::{Digest, Sha256};
 use tokio::sync::Semaphore;
@@ -21,6 +21,7 @@ use crate::camera::CameraSpec;
 use crate::config::{Config, Limits};
 use crate::intake::{self, IntakeOptions, IntakeTools, Media};
 use crate::jobs::JobStore;
+use crate::keyframes::{self, KeyframesSpec};
 use crate::renderer::Renderer;
 use crate::store::{ClipRecord, ClipStore, NewClip, now};
 use crate::work::WorkSlots;
@@ -105,7 +106,10 @@ impl Service {
             config.job_attempts,
         )
         .map_err(|e| e.to_string())?;
-        let renderer = Renderer::new(config.renderer)?;
+        let renderer = Renderer::new(
+            config.renderer,
+            config.footprint(engine.manifest().footprint()),
+        )?;
         let work = WorkSlots::new(config.max_concurrent_work(), config.max_queued_work());
         tracing::info!(
             renderer = renderer.name(),
@@ -154,6 +158,7 @@ impl Service {
         metrics::histogram!("c4g_intake_duration_seconds").record(started.elapsed().as_secs_f64());
         let service = self.clone();
         let source = intake.source.clone();
+        let frame_step = intake.frame_step;
         let (encoding, frames) = tokio::task::spawn_blocking(move || {
             let started = Instant::now();
             let context = intake
@@ -166,7 +171,10 @@ impl Service {
                     ))
                 })
                 .collect::<Result<Vec<_>, ServiceError>>()?;
-            let encoding = service.engine.encode(&context)?;
+            let encoding = service
+                .engine
+                .encode(&context)?
+                .with_frame_step(frame_step)?;
             metrics::histogram!("c4g_encode_duration_seconds")
                 .record(started.elapsed().as_secs_f64());
             let frames = intake.frames.into_iter().map(|f| f.image).collect();
@@ -185,6 +193,7 @@ impl Service {
                 context_times: encoding.times().to_vec(),
                 frame_order: encoding.frame_order().to_vec(),
                 feature_shape: encoding.shape(),
+                frame_step,
             },
             encoding,
             frames,
@@ -232,16 +241,27 @@ impl Service {
         Ok(())
     }
 
-    /// The Gaussians of clip `id` at each time.
+    /// The keyframes a request over `times` asks for, checked (none: exact decodes).
+    pub fn keyframes(
+        &self,
+        spec: Option<&KeyframesSpec>,
+        times: &[f64],
+    ) -> Result<Keyframes, ServiceError> {
+        keyframes::resolve(spec, times, self.limits.max_times)
+    }
+
+    /// The Gaussians of clip `id` at each time: decoded exactly, or through `keyframes`.
     pub async fn decode(
         self: &Arc<Self>,
         id: &str,
         times: Vec<f64>,
+        keyframes: Option<KeyframesSpec>,
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
         let record = self.store.get(id)?;
         self.check_times(&record, &times)?;
+        let keyframes = self.keyframes(keyframes.as_ref(), &times)?;
         let encoding = self.store.encoding(id).await?;
-        self.work(move |service| service.decode_now(&encoding, &times))
+        self.work(move |service| service.decode_keyframed_now(&encoding, &times, &keyframes))
             .await
     }
 
@@ -251,10 +271,51 @@ impl Service {
         encoding: &Encoding,
         times: &[f64],
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
+        self.decode_keyframed_now(encoding, times, &Keyframes::Exact)
+    }
+
+    /// Decodes on the calling (blocking) thread, exactly or through `keyframes`.
+    pub fn decode_keyframed_now(
+        &self,
+        encoding: &Encoding,
+        times: &[f64],
+        keyframes: &Keyframes,
+    ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
         let started = Instant::now();
-        let sets = self.engine.decode(encoding, times)?;
+        let (sets, stats) = self.engine.decode_keyframed(encoding, times, keyframes)?;
         metrics::histogram!("c4g_decode_duration_seconds").record(started.elapsed().as_secs_f64());
+        count_sets(stats.exact_decodes, stats.interpolated);
         Ok(times.iter().copied().zip(sets).collect())
+    }
+
+    /// Decodes the keyframes `keyframes` chooses for `times` (on the calling thread), for
+    /// [`interpolate_now`](Self::interpolate_now) to serve the sets from piece by piece.
+    pub fn keyframe_track_now(
+        &self,
+        encoding: &Encoding,
+        times: &[f64],
+        keyframes: &Keyframes,
+    ) -> Result<KeyframeTrack, ServiceError> {
+        let started = Instant::now();
+        let (track, stats) = self.engine.keyframe_track(encoding, times, keyframes)?;
+        metrics::histogram!("c4g_decode_duration_seconds").record(started.elapsed().as_secs_f64());
+        count_sets(stats.exact_decodes, 0);
+        Ok(track)
+    }
+
+    /// The sets at `times` from a track's keyframes: exact at a keyframe, else interpolated.
+    pub fn interpolate_now(
+        &self,
+        track: &KeyframeTrack,
+        times: &[f64],
+    ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
+        let sets = times
+            .iter()
+            .map(|&t| Ok((t, track.at(t)?)))
+            .collect::<Result<Vec<_>, ServiceError>>()?;
+        let interpolated = times.iter().filter(|&&t| track.keyframe(t).is_none());
+        count_sets(0, interpolated.count());
+        Ok(sets)
     }
 
     /// The image size a request asks for, checked against the limits.
@@ -378,8 +439,19 @@ impl Service {
         plan: &[(f64, Camera)],
         background: [f32; 3],
     ) -> Result<Vec<Image>, ServiceError> {
+        self.render_path_keyframed_now(encoding, plan, background, &Keyframes::Exact)
+    }
+
+    /// Renders every frame of a planned path, its sets decoded exactly or through `keyframes`.
+    pub fn render_path_keyframed_now(
+        &self,
+        encoding: &Encoding,
+        plan: &[(f64, Camera)],
+        background: [f32; 3],
+        keyframes: &Keyframes,
+    ) -> Result<Vec<Image>, ServiceError> {
         let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
-        let sets = self.decode_now(encoding, &times)?;
+        let sets = self.decode_keyframed_now(encoding, &times, keyframes)?;
         sets.iter()
             .zip(plan)
             .map(|((_, set), (_, camera))| self.render_now(set, camera, background))
@@ -406,6 +478,15 @@ impl Service {
     /// The short hash of the model package that keys its clips and jobs on disk.
     pub fn model_key(&self) -> &str {
         &self.model_key
+    }
+}
+
+/// Counts the sets the decoder computed and those interpolated between keyframes.
+fn count_sets(exact: usize, interpolated: usize) {
+    for (how, n) in [("exact", exact), ("interpolated", interpolated)] {
+        if n > 0 {
+            metrics::counter!("c4g_decoded_sets_total", "how" => how).increment(n as u64);
+        }
     }
 }
 

@@ -47,12 +47,25 @@ pub struct ClipRecord {
     pub frame_order: Vec<usize>,
     /// `[T, P, C]` of the features.
     pub feature_shape: [usize; 3],
+    /// Seconds between the source's frames, when known (the time policy's floor; see
+    /// [`frame_step`](Self::frame_step)). Absent in clips stored before it was recorded.
+    #[serde(default)]
+    pub frame_step: Option<f64>,
 }
 
 impl ClipRecord {
     /// Bytes of the clip's features.
     pub fn feature_bytes(&self) -> u64 {
         self.feature_shape.iter().product::<usize>() as u64 * 4
+    }
+
+    /// The source's frame step decodes use: the recorded one, else (a clip stored before it was
+    /// recorded) the source's frame period `1 / fps`, else unknown.
+    pub fn frame_step(&self) -> Option<f64> {
+        let positive = |s: &f64| s.is_finite() && *s > 0.0;
+        self.frame_step
+            .filter(positive)
+            .or_else(|| Some(1.0 / self.source.fps).filter(positive))
     }
 
     /// The span decode and render accept.
@@ -362,6 +375,7 @@ fn read_features(dir: &Path, record: &ClipRecord) -> Result<Encoding, ServiceErr
         features,
         record.feature_shape,
     )
+    .and_then(|encoding| encoding.with_frame_step(record.frame_step()))
     .map_err(|e| {
         ServiceError::Internal(format!(
             "the stored features of clip {} are damaged: {e}",
@@ -376,4 +390,47 @@ pub fn now() -> u64 {
         .duration_since(UNIX_EPOCH)
         .map(|d| d.as_secs())
         .unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn record_json(frame_step: Option<f64>, fps: f64) -> serde_json::Value {
+        let mut json = serde_json::json!({
+            "id": "abc", "model": "c4g-small", "created_at": 0,
+            "options": {},
+            "source": {"kind": "video", "frames": 90, "width": 64, "height": 64, "duration": 3.0, "fps": fps},
+            "context_times": [0.0, 1.0, 2.0, 3.0], "frame_order": [0, 1, 2, 3], "feature_shape": [4, 1, 1],
+        });
+        if let Some(step) = frame_step {
+            json["frame_step"] = step.into();
+        }
+        json
+    }
+
+    #[test]
+    fn a_clip_stored_before_frame_steps_were_recorded_loads_and_falls_back_to_the_frame_period() {
+        let old: ClipRecord = serde_json::from_value(record_json(None, 30.0)).unwrap();
+        assert_eq!(old.frame_step, None);
+        assert_eq!(old.frame_step(), Some(1.0 / 30.0));
+        let no_rate: ClipRecord = serde_json::from_value(record_json(None, 0.0)).unwrap();
+        assert_eq!(no_rate.frame_step(), None);
+        let new: ClipRecord = serde_json::from_value(record_json(Some(0.02), 30.0)).unwrap();
+        assert_eq!(new.frame_step(), Some(0.02));
+        let again: ClipRecord =
+            serde_json::from_value(serde_json::to_value(&new).unwrap()).unwrap();
+        assert_eq!(again, new);
+    }
+
+    #[test]
+    fn features_read_back_from_disk_carry_the_frame_step() {
+        let dir = std::env::temp_dir().join(format!("c4g-store-step-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("features.f32"), [0u8; 16]).unwrap();
+        let record: ClipRecord = serde_json::from_value(record_json(None, 25.0)).unwrap();
+        let encoding = read_features(&dir, &record).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+        assert_eq!(encoding.frame_step(), Some(1.0 / 25.0));
+    }
 }

@@ -106,7 +106,8 @@ fn serves_health_readiness_and_the_model_description() {
     let models: serde_json::Value = serde_json::from_str(&body).unwrap();
     assert_eq!(models["models"][0]["name"], "c4g-small");
     assert_eq!(models["models"][0]["gaussians_per_set"], 256);
-    assert_eq!(models["models"][0]["time_policy"], "stable");
+    // The fixture declares no policy: the package default, frame-step.
+    assert_eq!(models["models"][0]["time_policy"], "frame-step");
 }
 
 #[test]

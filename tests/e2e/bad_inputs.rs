@@ -309,6 +309,7 @@ fn api_keys_and_grpc_limits_are_enforced_and_the_server_keeps_serving() {
             clip_id: id.clone(),
             times: vec![0.3],
             precision: 0,
+            keyframes: None,
         };
         let refused = grpc.decode(request()).await.unwrap_err();
         assert_eq!(refused.code(), tonic::Code::Unauthenticated, "{refused:?}");
@@ -332,6 +333,7 @@ fn api_keys_and_grpc_limits_are_enforced_and_the_server_keeps_serving() {
             clip_id: id.clone(),
             times: vec![0.3; 200_000],
             precision: 0,
+            keyframes: None,
         });
         oversized
             .metadata_mut()
@@ -389,6 +391,7 @@ fn a_full_work_queue_is_refused_over_rest_and_grpc_with_its_kind_and_the_old_set
                 clip_id: id.clone(),
                 times: vec![0.3],
                 precision: 0,
+                keyframes: None,
             })
             .await
             .unwrap_err();

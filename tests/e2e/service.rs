@@ -226,6 +226,7 @@ fn a_real_video_goes_through_upload_decode_render_and_stream_over_http_and_grpc(
                 clip_id: id.clone(),
                 times: vec![1.0],
                 precision: 0,
+                keyframes: None,
             })
             .await
             .unwrap()
@@ -255,6 +256,7 @@ fn a_real_video_goes_through_upload_decode_render_and_stream_over_http_and_grpc(
                 end: Some(2.0),
                 spacing: Some(pb::stream_gaussians_request::Spacing::Fps(2.0)),
                 precision: pb::Precision::F16 as i32,
+                keyframes: None,
             })
             .await
             .unwrap()

@@ -4,7 +4,7 @@ use std::io::IsTerminal as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::bail;
-use c4g_client::{GaussianFormat, GaussianFrame, Precision};
+use c4g_client::{GaussianFormat, GaussianFrame, Keyframes, Precision};
 use indicatif::HumanBytes;
 use serde_json::json;
 
@@ -30,6 +30,46 @@ impl From<Format> for GaussianFormat {
     }
 }
 
+/// Keyframed decoding (decode, render along a trajectory, stream): the server decodes exact sets
+/// at keyframes and interpolates the rest, for fewer decoder runs. At most one mode.
+#[derive(Debug, Clone, clap::Args)]
+pub(super) struct KeyframeArgs {
+    /// Decode N keyframes spread evenly over the times and interpolate the sets between them.
+    #[arg(
+        long = "keyframes",
+        value_name = "N",
+        conflicts_with_all = ["keyframe_every", "keyframe_tolerance"]
+    )]
+    keyframes: Option<u32>,
+    /// Decode a keyframe every S seconds (and at the last time) and interpolate between them.
+    #[arg(long, value_name = "S", conflicts_with = "keyframe_tolerance")]
+    keyframe_every: Option<f64>,
+    /// Place keyframes adaptively until the interpolated positions are within X scene units at
+    /// every interval's checks.
+    #[arg(long, value_name = "X")]
+    keyframe_tolerance: Option<f64>,
+    /// With --keyframe-tolerance: at most N exact decodes (server default 64).
+    #[arg(long, value_name = "N", requires = "keyframe_tolerance")]
+    keyframe_max: Option<u32>,
+}
+
+impl KeyframeArgs {
+    /// The keyframes the flags ask for; `None`: every set exact.
+    pub(super) fn keyframes(&self) -> Option<Keyframes> {
+        match (self.keyframes, self.keyframe_every, self.keyframe_tolerance) {
+            (Some(count), _, _) => Some(Keyframes::Count { count }),
+            (None, Some(seconds), _) => Some(Keyframes::Every { seconds }),
+            (None, None, Some(tolerance)) => Some(Keyframes::Adaptive {
+                tolerance,
+                color_tolerance: None,
+                max: self.keyframe_max,
+                min_interval_s: None,
+            }),
+            (None, None, None) => None,
+        }
+    }
+}
+
 #[derive(Debug, clap::Args)]
 pub struct DecodeArgs {
     /// The clip id.
@@ -51,6 +91,8 @@ pub struct DecodeArgs {
     /// Write the server's bytes here.
     #[arg(short, long)]
     output: Option<PathBuf>,
+    #[command(flatten)]
+    keyframes: KeyframeArgs,
 }
 
 #[derive(Debug, clap::Args)]
@@ -67,19 +109,21 @@ pub struct ExportArgs {
 
 pub async fn run(cx: &Context, args: DecodeArgs) -> anyhow::Result<()> {
     let explicit = args.format.map(GaussianFormat::from);
+    let keyframes = args.keyframes.keyframes();
+    let keyframes = keyframes.as_ref();
     if let Some(path) = &args.output {
         let format = explicit
             .or_else(|| GaussianFormat::from_extension(path))
             .unwrap_or(GaussianFormat::Json);
-        return fetch_to_file(cx, &args.clip, &args.times, format, path).await;
+        return fetch_to_file(cx, &args.clip, &args.times, format, path, keyframes).await;
     }
     match explicit {
         // Without a format, a person gets a summary and a script (`--json`) the server's JSON.
-        None if !cx.json => summarise(cx, &args.clip, &args.times).await,
+        None if !cx.json => summarise(cx, &args.clip, &args.times, keyframes).await,
         None | Some(GaussianFormat::Json) => {
             let bytes = cx
                 .client
-                .gaussians_raw(&args.clip, &args.times, GaussianFormat::Json)
+                .gaussians_raw_keyframed(&args.clip, &args.times, GaussianFormat::Json, keyframes)
                 .await?;
             emit(&String::from_utf8_lossy(&bytes))?;
             if !bytes.ends_with(b"\n") {
@@ -93,7 +137,7 @@ pub async fn run(cx: &Context, args: DecodeArgs) -> anyhow::Result<()> {
             }
             let bytes = cx
                 .client
-                .gaussians_raw(&args.clip, &args.times, format)
+                .gaussians_raw_keyframed(&args.clip, &args.times, format, keyframes)
                 .await?;
             super::emit_bytes(&bytes)
         }
@@ -108,7 +152,7 @@ pub async fn export(cx: &Context, args: ExportArgs) -> anyhow::Result<()> {
             args.output.display()
         ),
     };
-    fetch_to_file(cx, &args.clip, &[args.time], format, &args.output).await
+    fetch_to_file(cx, &args.clip, &[args.time], format, &args.output, None).await
 }
 
 async fn fetch_to_file(
@@ -117,8 +161,12 @@ async fn fetch_to_file(
     times: &[f64],
     format: GaussianFormat,
     path: &Path,
+    keyframes: Option<&Keyframes>,
 ) -> anyhow::Result<()> {
-    let bytes = cx.client.gaussians_raw(clip, times, format).await?;
+    let bytes = cx
+        .client
+        .gaussians_raw_keyframed(clip, times, format, keyframes)
+        .await?;
     write_file(path, &bytes).await?;
     if cx.json {
         emit_json(&json!({
@@ -139,8 +187,16 @@ async fn fetch_to_file(
 }
 
 /// One line per time: how many Gaussians, where their means lie, how opaque they are.
-async fn summarise(cx: &Context, clip: &str, times: &[f64]) -> anyhow::Result<()> {
-    let frames = cx.client.gaussians(clip, times, Precision::F32).await?;
+async fn summarise(
+    cx: &Context,
+    clip: &str,
+    times: &[f64],
+    keyframes: Option<&Keyframes>,
+) -> anyhow::Result<()> {
+    let frames = cx
+        .client
+        .gaussians_keyframed(clip, times, Precision::F32, keyframes)
+        .await?;
     let text: String = frames.iter().map(|f| frame_summary(f) + "\n").collect();
     emit(&text)
 }

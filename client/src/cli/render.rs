@@ -7,6 +7,7 @@ use c4g_client::{RenderFormat, RenderRequest, TrajectoryPreset};
 use indicatif::HumanBytes;
 use serde_json::json;
 
+use super::decode::KeyframeArgs;
 use super::{Context, emit_json, emit_line, secs, write_file};
 
 /// The formats of `--format`.
@@ -81,6 +82,9 @@ pub struct Args {
     /// The file to write.
     #[arg(short, long)]
     output: PathBuf,
+    /// Keyframes for a video's sets (the server refuses them for a single image).
+    #[command(flatten)]
+    keyframes: KeyframeArgs,
 }
 
 pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
@@ -114,6 +118,7 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
         start: args.start,
         end: args.end,
         fps: args.fps,
+        keyframes: args.keyframes.keyframes(),
         ..RenderRequest::default()
     };
     let rendered = cx.client.render(&args.clip, &request).await?;

@@ -7,6 +7,7 @@ use c4g_client::{Precision, Spacing, StreamOptions};
 use futures_util::StreamExt;
 use serde_json::json;
 
+use super::decode::KeyframeArgs;
 use super::{Context, emit_json, emit_line, secs};
 
 /// The values of `--precision`.
@@ -38,6 +39,8 @@ pub struct Args {
     /// Write one .ply per set into this directory (frame-00000-t0.500.ply, ...).
     #[arg(short, long, value_name = "DIR")]
     output: Option<PathBuf>,
+    #[command(flatten)]
+    keyframes: KeyframeArgs,
 }
 
 pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
@@ -54,6 +57,7 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
             PrecisionArg::F32 => Precision::F32,
             PrecisionArg::F16 => Precision::F16,
         },
+        keyframes: args.keyframes.keyframes(),
     };
     if let Some(dir) = &args.output {
         tokio::fs::create_dir_all(dir)

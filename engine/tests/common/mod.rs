@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
-use c4g_engine::{ContextFrame, Engine, EngineOptions};
+use c4g_engine::{ContextFrame, Engine, EngineOptions, TimePolicy};
 
 /// Frame size of the fixture package.
 pub const SIZE: usize = 224;
@@ -52,10 +52,24 @@ pub fn skip_reason() -> Option<String> {
     reason
 }
 
-/// The fixture package with default options, loaded once per test binary.
+/// The fixture package with default options (its own time policy: frame-step, as it declares
+/// none), loaded once per test binary.
 pub fn engine() -> &'static Engine {
     static ENGINE: OnceLock<Engine> = OnceLock::new();
     ENGINE.get_or_init(|| Engine::load(fixture_dir(), EngineOptions::default()).unwrap())
+}
+
+/// The fixture package with the stable time policy, loaded once per test binary: what the
+/// mirror's stable reference outputs were made with.
+pub fn stable_engine() -> &'static Engine {
+    static ENGINE: OnceLock<Engine> = OnceLock::new();
+    ENGINE.get_or_init(|| {
+        let options = EngineOptions {
+            time_policy: Some(TimePolicy::Stable),
+            ..EngineOptions::default()
+        };
+        Engine::load(fixture_dir(), options).unwrap()
+    })
 }
 
 /// A deterministic, non-constant preprocessed frame (values in [-1, 1]), different per `seed`.

@@ -7,7 +7,8 @@ Modules, in the order data flows through them:
 - `aggregator`: the VGGT aggregator with its DINOv2 patch embedding (the encoder).
 - `decoder`: time embedding, the Gaussian decoder, the Gaussian head, the feature-lifting decoder.
 - `model`: `C4G`, the whole model with the official parameter names.
-- `time_policy`: the normalisation of timestamps (reference behaviour and the stable default).
+- `time_policy`: the normalisation of timestamps (the reference, frame-step and stable policies).
+- `time_policy_plot`: the deviation plot of docs/time-policy.md (the package's graphs on ONNX Runtime).
 - `checkpoint`: loading a checkpoint in the official layout with strict key matching.
 - `init`: random weights that make every part of the network matter (test models, cost at scale).
 - `export`: checkpoint → model package (model.json + ONNX graphs).

@@ -2,6 +2,7 @@
 
     python -m c4g.export --checkpoint c4g.ckpt --config official --out models/c4g-official
     python -m c4g.export --random-init --seed 0 --config official --out /tmp/c4g-official-random
+    python -m c4g.export --random-init --config official --precision int8 --out /tmp/c4g-official-int8
 
 The package contract (graph inputs / outputs, canonical Gaussian layout, model.json) is docs/package.md.
 Graphs are exported at a fixed input size, so the DINOv2 positional embedding (bicubic, antialiased
@@ -28,6 +29,8 @@ from .config import PRESETS, C4GConfig
 from .decoder import to_canonical
 from .init import random_init
 from .model import C4G
+from .raster_reference import FOOTPRINTS
+from .time_policy import POLICIES
 
 IR_VERSION = 10  # ONNX Runtime 1.31 reads IR <= 13; 10 is what opset 18 needs.
 OPSET = 18
@@ -100,6 +103,26 @@ def _export_graph(module: nn.Module, args: tuple, path: Path, inputs: dict[str, 
     onnx.checker.check_model(str(path))
 
 
+def declared_time_policy(training: dict | None) -> str:
+    """The `time_policy` a package declares: the one its training recipe names (our own models), else
+    frame-step (the official weights, trained on integer frame indices, where frame-step is the reference)."""
+    policy = (training or {}).get("time_policy", "frame-step")
+    if policy not in POLICIES:
+        raise ValueError(f"unknown time policy {policy!r} in the training recipe (known: {', '.join(POLICIES)})")
+    return policy
+
+
+def declared_footprint(training: dict | None) -> str:
+    """The rasterizer footprint a package declares (`rasterizer.footprint`, docs/package.md): the one its
+    training recipe names, else "ellipse" for our own models (c4g.train, the only source of a recipe,
+    renders with raster_fast's ellipse rule) and "3dgs" for official-layout weights without a recipe
+    (an official checkpoint was trained with the original 3DGS rasterizer; random init stands in for one)."""
+    footprint = (training or {}).get("footprint", "ellipse" if training is not None else "3dgs")
+    if footprint not in FOOTPRINTS:
+        raise ValueError(f"unknown footprint {footprint!r} in the training recipe (known: {', '.join(FOOTPRINTS)})")
+    return footprint
+
+
 def export_package(
     model: C4G,
     out: Path,
@@ -165,8 +188,10 @@ def export_package(
         "gaussian_count": cfg.queries,
         "gaussian_layout": GAUSSIAN_LAYOUT,
         "time": {"embedding_dim": cfg.time_dim},
+        "time_policy": declared_time_policy(training),
         "precision": "f32",
         "attention": "fused" if fused_attention else "plain",
+        "rasterizer": {"footprint": declared_footprint(training)},
         "files": files,
         "parameters": sum(v.numel() for v in model.state_dict().values()),
         "architecture": cfg.to_dict(),
@@ -217,6 +242,12 @@ def main(argv: list[str] | None = None) -> int:
         default="fused",
         help="fused: ONNX Runtime's MultiHeadAttention (flash attention on CPU); plain: MatMul/Softmax",
     )
+    ap.add_argument(
+        "--precision",
+        choices=["f32", "f16", "int8"],
+        default="f32",
+        help="what the graphs compute in: f16 (weights and activations) or int8 (the large MatMuls); see c4g.precision",
+    )
     args = ap.parse_args(argv)
     cfg = _config(args.config, args.feature_dim)
     try:
@@ -235,7 +266,11 @@ def main(argv: list[str] | None = None) -> int:
     manifest = export_package(
         model, args.out, name, args.version, provenance, args.description, fused_attention=args.attention == "fused", training=training
     )
-    print(f"wrote {args.out} ({manifest['parameters']:,} parameters; files: {', '.join(manifest['files'].values())})")
+    if args.precision != "f32":
+        from .precision import convert_package
+
+        manifest = convert_package(args.out, args.out, args.precision)
+    print(f"wrote {args.out} ({manifest['parameters']:,} parameters, {manifest['precision']}; files: {', '.join(manifest['files'].values())})")
     return 0
 
 

@@ -13,6 +13,12 @@ Numba kernel over 16 x 16 tiles with a hand-written backward pass, as in 3DGS:
 
 Gradients flow to the 2D centres, conics, opacities, colours and depths, and from there through the
 projection to the 3D parameters. The cuts themselves are treated as constants (they are steps).
+
+Footprint: the ellipse only (`raster_reference` footprint "ellipse", `Footprint::Ellipse` in the renderer
+crate): a Gaussian reaches the pixels within 3 sigma, not every pixel of its 3DGS tiles. This is the rule
+c4g-tiny was trained with (its model.json declares `"rasterizer": {"footprint": "ellipse"}`); the official
+C4G weights were trained with the original 3DGS rasterizer's tiles ("3dgs"), which this module does not
+implement.
 """
 
 from __future__ import annotations

@@ -9,7 +9,13 @@ The renderer crate's CPU and wgpu rasterizers are held against it. Constants are
   skipped;
 - EWA projection: J = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]] with x/z and y/z clamped to
   1.3 x the half-FOV tangent (W / (2 fx), H / (2 fy)); Σ2D = J W Σ Wᵀ Jᵀ + 0.3 I;
-- a Gaussian reaches the pixels within 3 sigma: Mahalanobis distance (under Σ2D) at most 3;
+- which pixels a Gaussian is evaluated at is its footprint (`renderer/src/raster/mod.rs` states both
+  rules and every difference from 3DGS):
+  - "ellipse" (the default): the pixels within 3 sigma, Mahalanobis distance (under Σ2D) at most 3;
+  - "3dgs", the original 3DGS CUDA rasterizer's rule: every pixel of the 16 x 16 tiles
+    [floor((p - r) / 16), floor((p + r + 15) / 16)) (clamped to the tile grid) on each axis, with
+    p = (u - 0.5, v - 0.5), r = ceil(3 sqrt(lambda)) and lambda = mid + sqrt(max(0.1, ((a - c) / 2)² + b²))
+    for Σ2D = [[a, b], [b, c]]; no 3-sigma cut, but a pixel whose exponent -d²/2 is positive is skipped;
 - alpha = min(0.99, opacity · exp(-d²/2)); alpha < 1/255 is skipped;
 - front to back by camera-space depth (ties by index); a pixel stops before the Gaussian that would
   bring its transmittance below 1e-4.
@@ -29,6 +35,9 @@ NEAR, FAR = 0.01, 100.0
 EPS2D = 0.3
 FOV_CLAMP = 1.3
 SIGMA_EXTENT = 3.0
+DISCRIMINANT_FLOOR_3DGS = 0.1
+TILE_3DGS = 16
+FOOTPRINTS = ("ellipse", "3dgs")
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
@@ -85,6 +94,21 @@ def project(
     return p_cam, uv, cov2
 
 
+def tiles_3dgs(uv: np.ndarray, cov2: np.ndarray, width: int, height: int) -> tuple[float, tuple[int, int, int, int]]:
+    """The 3DGS footprint of one Gaussian: its radius 3 sqrt(lambda) before rounding up, and its tiles
+    (x0, y0, x1, y1), [x0, x1) x [y0, y1), possibly empty."""
+    a, b, c = cov2[0, 0], cov2[0, 1], cov2[1, 1]
+    # 3DGS writes the discriminant as mid² - det: the same number.
+    lam = 0.5 * (a + c) + np.sqrt(max(DISCRIMINANT_FLOOR_3DGS, (0.5 * (a - c)) ** 2 + b * b))
+    raw = 3.0 * float(np.sqrt(lam))
+    r = float(np.ceil(raw))
+    px, py = uv[0] - 0.5, uv[1] - 0.5  # 3DGS's pixel coordinates put pixel i at i
+    gx, gy = -(-width // TILE_3DGS), -(-height // TILE_3DGS)
+    clip = lambda t, n: int(min(max(float(np.floor(t)), 0.0), n))  # noqa: E731
+    t = TILE_3DGS
+    return raw, (clip((px - r) / t, gx), clip((py - r) / t, gy), clip((px + r + t - 1) / t, gx), clip((py + r + t - 1) / t, gy))
+
+
 def conic_of(cov2: np.ndarray) -> np.ndarray:
     """Inverse of a 2x2 covariance."""
     det = cov2[0, 0] * cov2[1, 1] - cov2[0, 1] ** 2
@@ -97,12 +121,19 @@ class Margins:
     pair that was still being composited. A float32 rasterizer can only be held to a tight tolerance
     against this reference where these are not tiny: the fixture generator rejects scenes where they are.
 
-    - `d2`: min |d² - 9| (the 3-sigma cut), over pairs where the cut is a visible step;
-    - `alpha`: min |ln(opacity · exp(-d²/2) · 255)| (the 1/255 cut), over pairs inside 3 sigma;
+    - `d2`: min |d² - 9| (the 3-sigma cut), over pairs where the cut is a visible step (ellipse only);
+    - `alpha`: min |ln(opacity · exp(-d²/2) · 255)| (the 1/255 cut), over pairs inside the footprint;
     - `transmittance`: min |ln(T_next / 1e-4)| (the early stop), over pairs that passed both cuts;
     - `near_far`: min relative distance of a drawn or skipped Gaussian's depth to near and far;
     - `depth_order`: min relative depth gap between two Gaussians that reach a common pixel (an exact
-      tie is not counted: it is ordered by index on both sides).
+      tie is not counted: it is ordered by index on both sides);
+    - `tiles` (3dgs only): how close a Gaussian's tile range came to moving, in pixels: min distance of
+      p - r and p + r + 15 from a multiple of 16 (for ends inside or next to the image), and of
+      3 sqrt(lambda) from an integer where a radius one pixel larger or smaller would move an end;
+      over Gaussians visible (alpha >= 1/510 on a live pixel) in the ring of tiles along the range's edge;
+    - `power` (3dgs only): min d² / (|A| dx² + 2 |B dx dy| + |C| dy²) over live pairs in the tiles, for the
+      conic (A, B, C): how close the expanded quadratic form came to rounding negative (the positive-
+      exponent skip).
     """
 
     d2: float = np.inf
@@ -110,6 +141,8 @@ class Margins:
     transmittance: float = np.inf
     near_far: float = np.inf
     depth_order: float = np.inf
+    tiles: float = np.inf
+    power: float = np.inf
 
 
 def render(
@@ -124,9 +157,12 @@ def render(
     near: float = NEAR,
     far: float = FAR,
     margins: Margins | None = None,
+    footprint: str = "ellipse",
 ) -> dict[str, np.ndarray]:
-    """Renders the Gaussians; fills `margins` (when given) with how close the render came to the
-    model's discontinuities."""
+    """Renders the Gaussians with `footprint` ("ellipse" or "3dgs"); fills `margins` (when given) with
+    how close the render came to the model's discontinuities."""
+    if footprint not in FOOTPRINTS:
+        raise ValueError(f"footprint {footprint!r} is not one of {FOOTPRINTS}")
     f64 = lambda a: np.asarray(a, dtype=np.float64)  # noqa: E731
     means, scales, rots, opac, cols = map(f64, (means, scales, rotations_wxyz, opacities, colors))
     n = len(opac)
@@ -153,6 +189,7 @@ def render(
         margins.near_far = float(min(np.abs(zf - near).min() / near, np.abs(zf - far).min() / far))
 
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64) + 0.5
+    pix_rows, pix_cols = np.mgrid[0:h, 0:w]
     reach = []
     for i in order:
         det = cov2[i, 0, 0] * cov2[i, 1, 1] - cov2[i, 0, 1] ** 2
@@ -164,12 +201,28 @@ def render(
         d2 = conic[0, 0] * dx * dx + 2 * conic[0, 1] * dx * dy + conic[1, 1] * dy * dy
         raw = opac[i] * np.exp(-0.5 * d2)
         alpha = np.minimum(ALPHA_MAX, raw)
-        inside = d2 <= SIGMA_EXTENT**2
+        if footprint == "ellipse":
+            inside = d2 <= SIGMA_EXTENT**2
+        else:
+            raw_radius, (x0, y0, x1, y1) = tiles_3dgs(uv[i], cov2[i], w, h)
+            in_tiles = _tile_mask(pix_rows, pix_cols, (x0, y0, x1, y1))
+            inside = in_tiles & (d2 >= 0)  # -d²/2 > 0 is skipped
         hit = inside & (alpha >= ALPHA_MIN) & ~done
         next_t = trans * (1 - alpha)
         if margins is not None:
-            _note_margins(margins, d2, raw, next_t, inside, hit, ~done, opac[i])
-            reach.append((z[i], inside))
+            if footprint == "ellipse":
+                _note_margins(margins, d2, raw, next_t, inside, hit, ~done, opac[i])
+                reach.append((z[i], inside))
+            else:
+                _note_margins(margins, d2, raw, next_t, inside, hit, ~done, opac[i], sigma_cut=False)
+                terms = np.abs(conic[0, 0]) * dx * dx + 2 * np.abs(conic[0, 1] * dx * dy) + np.abs(conic[1, 1]) * dy * dy
+                live = in_tiles & ~done
+                if live.any():
+                    with np.errstate(invalid="ignore", divide="ignore"):
+                        ratio = np.where(terms > 0, d2 / np.where(terms > 0, terms, 1), np.inf)
+                    margins.power = min(margins.power, float(ratio[live].min()))
+                margins.tiles = min(margins.tiles, _tiles_margin(uv[i], raw_radius, (x0, y0, x1, y1), raw, ~done, pix_rows, pix_cols, w, h))
+                reach.append((z[i], inside & (alpha >= ALPHA_MIN)))
         stop = hit & (next_t < T_MIN)
         done |= stop
         hit &= ~stop
@@ -191,10 +244,38 @@ def render(
     }
 
 
-def _note_margins(margins, d2, raw, next_t, inside, hit, live, opacity) -> None:
+def _tile_mask(rows: np.ndarray, cols: np.ndarray, rect: tuple[int, int, int, int]) -> np.ndarray:
+    x0, y0, x1, y1 = rect
+    t = TILE_3DGS
+    return (cols >= x0 * t) & (cols < x1 * t) & (rows >= y0 * t) & (rows < y1 * t)
+
+
+def _tiles_margin(uv, raw_radius, rect, raw, live, rows, cols, w, h) -> float:
+    """The `tiles` margin of one Gaussian (inf when its tile range's edge is not a visible step)."""
+    x0, y0, x1, y1 = rect
+    gx, gy = -(-w // TILE_3DGS), -(-h // TILE_3DGS)
+    grown = _tile_mask(rows, cols, (max(x0 - 1, 0), max(y0 - 1, 0), min(x1 + 1, gx), min(y1 + 1, gy)))
+    shrunk = _tile_mask(rows, cols, (x0 + 1, y0 + 1, x1 - 1, y1 - 1))
+    ring = grown & ~shrunk
+    if not (ring & live & (raw >= ALPHA_MIN * 0.5)).any():
+        return np.inf
+    r = float(np.ceil(raw_radius))
+    t = TILE_3DGS
+    best = np.inf
+    for c, n in ((uv[0] - 0.5, gx), (uv[1] - 0.5, gy)):
+        for end in (c - r, c + r + t - 1):
+            if -t <= end <= t * (n + 1):
+                gap = abs(end - t * round(end / t))
+                best = min(best, gap)
+                if gap <= 1.0:  # a radius one off would move this end: its rounding counts too
+                    best = min(best, abs(raw_radius - round(raw_radius)))
+    return best
+
+
+def _note_margins(margins, d2, raw, next_t, inside, hit, live, opacity, sigma_cut=True) -> None:
     with np.errstate(divide="ignore"):
         # The 3-sigma cut is a step only where the Gaussian is still visible there.
-        if opacity * np.exp(-0.5 * SIGMA_EXTENT**2) >= ALPHA_MIN * 0.5:
+        if sigma_cut and opacity * np.exp(-0.5 * SIGMA_EXTENT**2) >= ALPHA_MIN * 0.5:
             near_cut = live & (np.abs(d2 - SIGMA_EXTENT**2) < 1.0)
             if near_cut.any():
                 margins.d2 = min(margins.d2, float(np.abs(d2 - SIGMA_EXTENT**2)[near_cut].min()))

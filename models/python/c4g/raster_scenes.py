@@ -1,13 +1,16 @@
 """Fixture scenes for the rasterizers: small deterministic scenes with the float64 reference's render.
 
-    python -m c4g.raster_scenes --out models/fixtures/scenes
+    python -m c4g.raster_scenes --out models/fixtures/scenes [--only NAME ...] [--footprints ellipse 3dgs]
 
-writes one `<name>.safetensors` per scene (layout in `models/fixtures/scenes/README.md`). Every input
-is rounded to float32 *before* the reference renders it, so a float32 rasterizer sees exactly the
-scene the reference saw. A scene is only kept when the render stays clear of the forward model's
-discontinuities (the 3-sigma cut, the 1/255 cut, the transmittance stop, near/far, depth order; see
-`raster_reference.Margins`): otherwise a float32 rounding could flip a pixel by up to ~1e-2 and no
-tight tolerance would hold. Random scenes retry with the next seed until they are clear.
+writes one `<name>.safetensors` per scene rendered with the ellipse footprint and one
+`<name>-3dgs.safetensors` per scene rendered with the 3DGS one (layout in
+`models/fixtures/scenes/README.md`; the metadata's `footprint` says which). Every input is rounded to
+float32 *before* the reference renders it, so a float32 rasterizer sees exactly the scene the reference
+saw. A scene is only kept when the render stays clear of the forward model's discontinuities (the
+3-sigma cut, the 1/255 cut, the transmittance stop, near/far, depth order, the 3DGS tile range and its
+positive-exponent skip; see `raster_reference.Margins`): otherwise a float32 rounding could flip a
+pixel (or, for a tile range, a row of pixels) by up to ~1e-2 and no tight tolerance would hold. Random
+scenes retry with the next seed until they are clear, for each footprint on its own.
 """
 
 from __future__ import annotations
@@ -22,11 +25,13 @@ from typing import Callable
 import numpy as np
 from safetensors.numpy import save_file
 
-from c4g.raster_reference import Camera, Margins, render
+from c4g.raster_reference import FOOTPRINTS, Camera, Margins, render
 
 # The smallest margins a kept scene may have. Float32 errors are ~1e-5 in d² near the cut, ~1e-5
-# relative in alpha and transmittance and ~3e-7 relative in depth: these leave a factor of ten or more.
-MIN_MARGINS = Margins(d2=1e-4, alpha=1e-4, transmittance=1e-4, near_far=1e-4, depth_order=5e-6)
+# relative in alpha and transmittance, ~3e-7 relative in depth, ~1e-4 pixels in a 3DGS radius or tile
+# end (the radius at ~1e-6 relative) and ~1e-6 relative in the expanded quadratic form: these leave a
+# factor of ten or more.
+MIN_MARGINS = Margins(d2=1e-4, alpha=1e-4, transmittance=1e-4, near_far=1e-4, depth_order=5e-6, tiles=1e-3, power=1e-4)
 
 
 @dataclass
@@ -192,13 +197,40 @@ def background(seed: int) -> Scene:
     )
 
 
+def large(seed: int) -> Scene:
+    """Large anisotropic Gaussians, mostly opaque, overlapping: their fringes beyond 3 sigma (alpha up to
+    0.011 · opacity each, summing where they overlap) are what the two footprints disagree on."""
+    rng = np.random.default_rng(seed)
+    n = 14
+    return Scene(
+        description="14 large anisotropic Gaussians (on screen sigma about 3 to 15 pixels, opacity 0.4 to 1) "
+        "overlapping in depth, with 4 feature channels: beyond 3 sigma their fringes still reach alpha "
+        "above 1/255 inside their 3DGS tiles",
+        positions=rng.uniform([-0.8, -0.6, 2.5], [0.8, 0.6, 4.5], (n, 3)),
+        scales=np.exp(rng.uniform(np.log(0.08), np.log(0.5), (n, 3))) * [1.0, 1.0, 0.3],
+        rotations=random_rotations(rng, n),
+        opacities=rng.uniform(0.4, 1.0, n),
+        colors=rng.uniform(0, 1, (n, 3)),
+        features=rng.normal(size=(n, 4)),
+        intrinsics=(80.0, 80.0, 48.0, 36.0),
+        size=(96, 72),
+        world_to_camera=np.eye(4),
+    )
+
+
 SCENES: dict[str, Callable[[int], Scene]] = {
     "cloud": cloud,
     "extremes": extremes,
     "fullscreen": fullscreen,
     "stack": stack,
     "background": background,
+    "large": large,
 }
+
+
+def file_name(name: str, footprint: str) -> str:
+    """The fixture file of scene `name` rendered with `footprint`."""
+    return f"{name}.safetensors" if footprint == "ellipse" else f"{name}-{footprint}.safetensors"
 
 
 def rounded(scene: Scene) -> Scene:
@@ -219,7 +251,7 @@ def rounded(scene: Scene) -> Scene:
     )
 
 
-def render_scene(scene: Scene, margins: Margins | None = None) -> dict[str, np.ndarray]:
+def render_scene(scene: Scene, margins: Margins | None = None, footprint: str = "ellipse") -> dict[str, np.ndarray]:
     fx, fy, cx, cy = scene.intrinsics
     cam = Camera(fx, fy, cx, cy, scene.size[0], scene.size[1], scene.world_to_camera)
     return render(
@@ -232,6 +264,7 @@ def render_scene(scene: Scene, margins: Margins | None = None) -> dict[str, np.n
         features=scene.features,
         background=scene.background,
         margins=margins,
+        footprint=footprint,
     )
 
 
@@ -239,15 +272,17 @@ def clear_of_cuts(m: Margins) -> bool:
     return all(getattr(m, k) >= getattr(MIN_MARGINS, k) for k in asdict(MIN_MARGINS))
 
 
-def build(name: str, first_seed: int = 0, tries: int = 50) -> tuple[Scene, dict[str, np.ndarray], Margins, int]:
+def build(
+    name: str, first_seed: int = 0, tries: int = 50, footprint: str = "ellipse"
+) -> tuple[Scene, dict[str, np.ndarray], Margins, int]:
     for seed in range(first_seed, first_seed + tries):
         scene = rounded(SCENES[name](seed))
         margins = Margins()
         with np.errstate(invalid="ignore", over="ignore"):
-            out = render_scene(scene, margins)
+            out = render_scene(scene, margins, footprint)
         if clear_of_cuts(margins):
             return scene, out, margins, seed
-    raise RuntimeError(f"scene {name}: no seed in {tries} tries stays clear of the cuts")
+    raise RuntimeError(f"scene {name} ({footprint}): no seed in {tries} tries stays clear of the cuts")
 
 
 def tensors(scene: Scene, out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -276,20 +311,24 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=Path("models/fixtures/scenes"))
     ap.add_argument("--only", nargs="*", choices=sorted(SCENES), help="scenes to write (default: all)")
+    ap.add_argument("--footprints", nargs="*", choices=FOOTPRINTS, help="footprints to render (default: both)")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     for name in args.only or SCENES:
-        scene, out, margins, seed = build(name)
-        meta = {
-            "description": scene.description,
-            "seed": str(seed),
-            "generator": "python -m c4g.raster_scenes (models/python/c4g/raster_scenes.py)",
-            "margins": json.dumps({k: float(v) for k, v in asdict(margins).items()}),
-        }
-        save_file(tensors(scene, out), str(args.out / f"{name}.safetensors"), metadata=meta)
-        covered = float((out["alpha"] > 0).mean())
-        print(f"{name}: seed {seed}, {len(scene.opacities)} Gaussians, {scene.size[0]}x{scene.size[1]}, "
-              f"{covered:.0%} covered, margins " + ", ".join(f"{k}={v:.2g}" for k, v in asdict(margins).items()))
+        for footprint in args.footprints or FOOTPRINTS:
+            scene, out, margins, seed = build(name, footprint=footprint)
+            meta = {
+                "description": scene.description,
+                "seed": str(seed),
+                "footprint": footprint,
+                "generator": "python -m c4g.raster_scenes (models/python/c4g/raster_scenes.py)",
+                "margins": json.dumps({k: float(v) for k, v in asdict(margins).items()}),
+            }
+            file = file_name(name, footprint)
+            save_file(tensors(scene, out), str(args.out / file), metadata=meta)
+            covered = float((out["alpha"] > 0).mean())
+            print(f"{file}: seed {seed}, {len(scene.opacities)} Gaussians, {scene.size[0]}x{scene.size[1]}, "
+                  f"{covered:.0%} covered, margins " + ", ".join(f"{k}={v:.2g}" for k, v in asdict(margins).items()))
 
 
 if __name__ == "__main__":

@@ -35,9 +35,18 @@ def test_manifest_declares_what_the_package_holds(package):
     assert manifest["gaussian_count"] == 256 and manifest["tokens_per_frame"] == 256 and manifest["feature_width"] == 128
     assert manifest["feature_decoder"] == {"feature_width": 8}
     assert len(manifest["provenance"]["sha256"]) == 64
+    assert manifest["rasterizer"] == {"footprint": "3dgs"}  # official layout, no training recipe
     for name in manifest["files"].values():
         model = onnx.load(str(package / name))
         assert model.ir_version <= 13
+
+
+def test_the_declared_footprint_is_the_recipe_s_else_ellipse_for_our_models_and_3dgs_for_official_ones():
+    assert export.declared_footprint(None) == "3dgs"
+    assert export.declared_footprint({"steps": 2400}) == "ellipse"
+    assert export.declared_footprint({"footprint": "3dgs"}) == "3dgs"
+    with pytest.raises(ValueError, match="footprint"):
+        export.declared_footprint({"footprint": "gsplat"})
 
 
 def test_onnx_graphs_reproduce_reference(package, official_reference):

@@ -1,8 +1,8 @@
 """The float64 rasterizer reference against facts worked out by hand (not by the code under test).
 
 Every Rust rasterizer is held against this reference's saved outputs, so the reference itself is held
-against closed forms: the footprint of an isotropic Gaussian, front-to-back compositing of two layers,
-the transmittance stop, expected depth, and the skipping rules.
+against closed forms: the footprint of an isotropic Gaussian (with the ellipse and with the 3DGS tiles),
+front-to-back compositing of two layers, the transmittance stop, expected depth, and the skipping rules.
 """
 
 import math
@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from c4g.raster_reference import ALPHA_MIN, Camera, Margins, render
+from c4g.raster_reference import ALPHA_MIN, Camera, Margins, render, tiles_3dgs
 
 W, H = 65, 49
 F = 40.0
@@ -273,3 +273,70 @@ def test_input_order_does_not_matter(perm, seed):
     b = render(pos[p], scl[p], rot[p], opa[p], col[p], camera(33, 25))
     for key in a:
         np.testing.assert_allclose(a[key], b[key], atol=1e-12)
+
+
+# ---- the 3DGS footprint --------------------------------------------------------------------------
+# An isotropic Gaussian on the axis of a 128 x 128 camera (f = 64, principal point (77.4, 64)): var =
+# (64 · 0.4 / 4)² + 0.3 = 41.26, sigma = 6.42 px. 3DGS: lambda = var + sqrt(0.1) (the discriminant is 0,
+# floored), 3 sqrt(lambda) = 19.34, r = 20; p = (76.9, 63.5), so its tiles are x in [floor(56.9 / 16),
+# floor(111.9 / 16)) = [3, 6) and y in [floor(43.5 / 16), floor(98.5 / 16)) = [2, 6).
+BIG_VAR = (64 * 0.4 / 4) ** 2 + 0.3
+
+
+def big(footprint, **kw):
+    cam = camera(width=128, height=128, fx=64.0, fy=64.0, cx=77.4, cy=64.0)
+    return draw([((0, 0, 4), (0.4, 0.4, 0.4), 0.9, (1, 1, 1))], cam=cam, footprint=footprint, **kw)
+
+
+def test_the_3dgs_tiles_of_an_isotropic_gaussian_are_worked_out_by_hand():
+    raw, rect = tiles_3dgs(np.array([77.4, 64.0]), BIG_VAR * np.eye(2), 128, 128)
+    assert raw == pytest.approx(3 * math.sqrt(BIG_VAR + math.sqrt(0.1)), rel=1e-12)
+    assert rect == (3, 2, 6, 6)
+    # Off screen to the left and right: the ends clamp to the grid, and an empty range is empty.
+    assert tiles_3dgs(np.array([-500.0, 64.0]), BIG_VAR * np.eye(2), 128, 128)[1][::2] == (0, 0)
+    assert tiles_3dgs(np.array([700.0, 64.0]), BIG_VAR * np.eye(2), 128, 128)[1][::2] == (8, 8)
+
+
+def test_the_3dgs_footprint_draws_every_pixel_of_its_tiles_down_to_1_255_and_nothing_outside():
+    out = big("3dgs")
+    ys, xs = np.mgrid[0:128, 0:128]
+    d2 = ((xs + 0.5 - 77.4) ** 2 + (ys + 0.5 - 64.0) ** 2) / BIG_VAR
+    expected = 0.9 * np.exp(-d2 / 2)
+    in_tiles = (xs >= 48) & (xs < 96) & (ys >= 32) & (ys < 96)
+    drawn = in_tiles & (expected >= ALPHA_MIN)
+    np.testing.assert_allclose(out["alpha"][drawn], expected[drawn], rtol=1e-12)
+    assert np.all(out["alpha"][~drawn] == 0)
+    # The fringe beyond 3 sigma is drawn, and the ellipse cuts it.
+    fringe = drawn & (d2 > 9)
+    assert fringe.sum() > 100
+    assert np.all(big("ellipse")["alpha"][fringe] == 0)
+    # Pixel column 96 lies inside the square p ± r (p + r = 96.9) but not inside the tiles: within 3
+    # sigma on the centre row, the ellipse draws it and 3DGS does not.
+    assert d2[64, 96] < 9 and expected[64, 96] > ALPHA_MIN
+    assert out["alpha"][64, 96] == 0 and big("ellipse")["alpha"][64, 96] > 0
+
+
+def test_the_3dgs_footprint_draws_what_the_ellipse_draws_inside_3_sigma_and_its_tiles():
+    tiles, ellipse = big("3dgs"), big("ellipse")
+    both = (tiles["alpha"] > 0) & (ellipse["alpha"] > 0)
+    assert both.sum() > 1000
+    np.testing.assert_array_equal(tiles["rgb"][both], ellipse["rgb"][both])
+
+
+def test_an_unknown_footprint_is_refused():
+    with pytest.raises(ValueError, match="footprint"):
+        big("gsplat")
+
+
+def test_margins_report_how_close_3dgs_tiles_came_to_moving():
+    m = Margins()
+    big("3dgs", margins=m)
+    # Ends p - r = 56.9, p + r + 15 = 111.9 (x), 43.5, 98.5 (y): 7.1, 0.1, 4.5 and 2.5 from a multiple of
+    # 16; and 3 sqrt(lambda) is 0.66 from an integer (counted: 111.9 lies within a pixel of 112).
+    raw = 3 * math.sqrt(BIG_VAR + math.sqrt(0.1))
+    assert m.tiles == pytest.approx(min(0.1, abs(raw - round(raw))), abs=1e-9)
+    assert m.d2 == math.inf and 0 < m.power < math.inf
+    assert Margins().tiles == math.inf
+    e = Margins()
+    big("ellipse", margins=e)
+    assert e.tiles == math.inf and e.d2 < math.inf

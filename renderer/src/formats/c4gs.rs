@@ -24,7 +24,7 @@
 //! allocates anything, so a truncated or hostile payload is a
 //! [`RendererError::Format`] that says what is short, never a panic or a huge allocation.
 //! `f32` round-trips exactly; `f16` rounds each value to the nearest half (relative error at most
-//! 2⁻¹¹, values beyond ±65504 become infinite).
+//! 2⁻¹¹) and saturates values beyond its range at ±65504, so every finite set stays finite.
 
 use std::fmt;
 use std::str::FromStr;
@@ -102,9 +102,7 @@ impl Precision {
     fn push(self, out: &mut Vec<u8>, values: impl Iterator<Item = f32>) {
         match self {
             Precision::F32 => values.for_each(|v| out.extend_from_slice(&v.to_le_bytes())),
-            Precision::F16 => {
-                values.for_each(|v| out.extend_from_slice(&f16::from_f32(v).to_le_bytes()))
-            }
+            Precision::F16 => values.for_each(|v| out.extend_from_slice(&to_f16(v).to_le_bytes())),
         }
     }
 
@@ -238,6 +236,17 @@ pub fn decode(bytes: &[u8]) -> Result<Vec<(f64, GaussianSet)>, RendererError> {
         ));
     }
     Ok(out)
+}
+
+/// The largest finite half.
+const F16_MAX: f32 = 65504.0;
+
+/// `v` as a half, saturating at ±65504: a set is finite (it is validated when decoded), and a
+/// value past half's range (a huge scale, a far position) must not become infinite on the wire,
+/// where the reader would refuse the set. Values below half's smallest subnormal (2⁻²⁴) round to
+/// zero, which keeps scales non-negative and so valid.
+fn to_f16(v: f32) -> f16 {
+    f16::from_f32(v.clamp(-F16_MAX, F16_MAX))
 }
 
 /// The five columns of `set` (means, scales, rotations, opacities, colours), each packed
@@ -387,6 +396,23 @@ mod tests {
                 .contains("frame 1 holds 2 Gaussians; the first holds 1"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn half_precision_saturates_instead_of_overflowing_and_stays_valid() {
+        let huge = GaussianSet::from_gaussians([Gaussian {
+            position: Vec3::new(1e6, -1e9, 3.0),
+            scale: Vec3::new(1e5, 1e-9, 0.5),
+            rotation: Quat::IDENTITY,
+            opacity: 1.0,
+            color: Vec3::new(0.0, 0.5, 1.0),
+        }]);
+        huge.validate().unwrap();
+        let bytes = encode([(0.0, &huge)], Precision::F16).unwrap();
+        let (_, back) = decode(&bytes).unwrap().remove(0);
+        back.validate().unwrap();
+        assert_eq!(back.positions()[0], [65504.0, -65504.0, 3.0]);
+        assert_eq!(back.scales()[0], [65504.0, 0.0, 0.5]);
     }
 
     #[test]

@@ -11,17 +11,55 @@
 //!   ±[`FOV_CLAMP`] × the half-FOV tangent (`W / 2fx`, `H / 2fy`); `Σ2D = J W Σ Wᵀ Jᵀ + EPS2D·I`,
 //!   `W` the rotation of the world-to-camera pose, `Σ = R S Sᵀ Rᵀ`;
 //! - the mean projects to `u = fx·x/z + cx`, `v = fy·y/z + cy`; pixel `(i, j)` is evaluated at its
-//!   centre `(i + 0.5, j + 0.5)`;
-//! - a Gaussian reaches a pixel when the Mahalanobis distance `d` of the pixel centre under `Σ2D`
-//!   is at most [`SIGMA_EXTENT`]; there `alpha = min(ALPHA_MAX, opacity · exp(-d²/2))`, and
-//!   `alpha < ALPHA_MIN` contributes nothing;
+//!   centre `(i + 0.5, j + 0.5)`, where the Mahalanobis distance `d` of the centre under `Σ2D`
+//!   gives `alpha = min(ALPHA_MAX, opacity · exp(-d²/2))`, and `alpha < ALPHA_MIN` contributes
+//!   nothing;
+//! - which pixels a Gaussian is evaluated at is its [`Footprint`] ([`RenderOptions::footprint`]):
+//!   - [`Footprint::Ellipse`] (the default): the pixels with `d ≤` [`SIGMA_EXTENT`];
+//!   - [`Footprint::Tiles3dgs`], the rule of the original 3DGS CUDA rasterizer
+//!     (`diff_gaussian_rasterization`, which the public C4G code renders with): with `Σ2D =
+//!     [[a, b], [b, c]]`, `λ = (a + c)/2 + √max(`[`DISCRIMINANT_FLOOR_3DGS`]`, ((a − c)/2)² + b²)`
+//!     (3DGS writes the discriminant `mid² − det`: the same number, here without f32
+//!     cancellation), the radius `r = ⌈3·√λ⌉` pixels and, with `p = (u − 0.5, v − 0.5)` (3DGS's
+//!     pixel coordinates, where pixel `i` sits at `i`), the tiles of [`TILE_3DGS`] pixels
+//!     `[⌊(p − r)/16⌋, ⌊(p + r + 15)/16⌋)` on each axis, both ends clamped to `[0, tiles]`;
+//!     every pixel of those tiles is evaluated, with no cut at 3 sigma (3DGS also skips where the
+//!     exponent `-d²/2` is positive, which never happens in exact arithmetic); a Gaussian whose
+//!     tile range is empty is skipped. Beyond 3 sigma, where the ellipse cuts, its fringe (alpha
+//!     up to `opacity · e^-4.5 ≈ 0.011 · opacity`, down to [`ALPHA_MIN`]) is drawn inside its
+//!     tiles. Its tiles are not quite the square `p ± r`: where `p + r` lies less than a pixel
+//!     past a multiple of 16, the last pixel column (row) of the square is left out, even inside
+//!     3 sigma;
 //! - front to back by camera-space depth (ties by index); a pixel stops before the Gaussian that
 //!   would bring its transmittance `T` below [`TRANSMITTANCE_MIN`];
 //! - outputs: colour `Σ cᵢ αᵢ Tᵢ + T·background`, alpha `1 - T`, depth `Σ zᵢ αᵢ Tᵢ`
 //!   (alpha-weighted), expected depth `depth / alpha` (0 where alpha is 0), and any per-Gaussian
 //!   feature channels composited like colour (no background).
 //!
-//! The float64 reference of the same model is `models/python/c4g/raster_reference.py`.
+//! Where [`Footprint::Tiles3dgs`] still differs from `diff_gaussian_rasterization`, by design:
+//! - near and far: 3DGS culls a Gaussian whose camera-space depth is `≤ 0.2` (hard-coded, whatever
+//!   its projection matrix's near plane) and has no far plane; here `[near, far]` of
+//!   [`RenderOptions`] (0.01 and 100 by default) decide, in both footprints (`near: 0.2` gives
+//!   3DGS's cull but for a depth of exactly 0.2, which is drawn here);
+//! - the principal point: 3DGS's projection puts it at the image centre; here it is `(cx, cy)`
+//!   (the same where `cx = W/2`, `cy = H/2`, as C4G's cameras have it);
+//! - precision: 3DGS computes in f32 (with the cancelling `mid² − det`); the rule here is its exact
+//!   arithmetic (the CPU rasterizer projects in f64, the wgpu one in rescaled f32), so a radius or
+//!   tile end that f32 rounds across an integer can move a tile row or column of one Gaussian;
+//! - non-finite parameters and a zero rotation skip the Gaussian here (3DGS computes with them);
+//!   3DGS skips a determinant of exactly 0 where this skips one that is not positive and finite;
+//! - outputs: 3DGS renders colour (over its background) only; alpha, depth, expected depth and
+//!   features are this model's.
+//!
+//! The same in both footprints, and in 3DGS: the 0.3 low-pass dilation ([`EPS2D`], in the
+//! determinant as well, with no opacity compensation: only the later `antialiasing` option of 3DGS
+//! adds one), the FOV clamp, the alpha clamp 0.99 and the 1/255 skip, the stop before `T` would
+//! fall below 1e-4 (that Gaussian and all behind it are not composited), front-to-back order by
+//! camera-space depth with ties by index (3DGS's stable radix sort of keys written in index
+//! order).
+//!
+//! The float64 reference of the same model, both footprints, is
+//! `models/python/c4g/raster_reference.py`.
 
 mod cpu;
 #[cfg(feature = "gpu")]
@@ -29,9 +67,12 @@ pub mod gpu;
 
 pub use cpu::{CpuRasterizer, PAIR_BUDGET, TILE};
 
+use serde::{Deserialize, Serialize};
+
 use crate::{Camera, GaussianSet, RendererError};
 
-/// Nearest camera-space depth rendered (gsplat's near plane; C4G's reference renders with it).
+/// Nearest camera-space depth rendered (gsplat's near plane; the one C4G's reference passes its
+/// rasterizer, whose own cull is at 0.2: see the module documentation).
 pub const NEAR: f32 = 0.01;
 /// Farthest camera-space depth rendered.
 pub const FAR: f32 = 100.0;
@@ -40,14 +81,51 @@ pub const EPS2D: f32 = 0.3;
 /// x/z and y/z are clamped to this multiple of the half-FOV tangent in the Jacobian, so Gaussians
 /// far outside the view do not get absurd footprints.
 pub const FOV_CLAMP: f32 = 1.3;
-/// A Gaussian reaches pixels within this many standard deviations.
+/// [`Footprint::Ellipse`]: a Gaussian reaches the pixels within this many standard deviations.
+/// [`Footprint::Tiles3dgs`]: its radius is this many standard deviations along the major axis.
 pub const SIGMA_EXTENT: f32 = 3.0;
+/// [`Footprint::Tiles3dgs`]: the floor of the discriminant in the largest eigenvalue of `Σ2D`.
+pub const DISCRIMINANT_FLOOR_3DGS: f32 = 0.1;
+/// [`Footprint::Tiles3dgs`]: the edge of 3DGS's tiles (its `BLOCK_X`, `BLOCK_Y`), in pixels.
+pub const TILE_3DGS: u32 = 16;
 /// Largest alpha one Gaussian contributes.
 pub const ALPHA_MAX: f32 = 0.99;
 /// Smallest alpha that counts.
 pub const ALPHA_MIN: f32 = 1.0 / 255.0;
 /// A pixel is finished when its transmittance would fall below this.
 pub const TRANSMITTANCE_MIN: f32 = 1e-4;
+
+/// Which pixels a Gaussian is evaluated at (the rules are in the [module](self) documentation).
+///
+/// In `model.json` and on the command line: `"ellipse"`, `"3dgs"`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+pub enum Footprint {
+    /// The pixels within 3 sigma (Mahalanobis distance ≤ [`SIGMA_EXTENT`]): gsplat's and this
+    /// crate's rule, what c4g-tiny was trained with.
+    #[default]
+    #[serde(rename = "ellipse")]
+    Ellipse,
+    /// Every pixel of the 16×16 tiles that the original 3DGS rasterizer's square of radius
+    /// `⌈3√λmax⌉` reaches: what the public C4G code renders (and trained) with.
+    #[serde(rename = "3dgs")]
+    Tiles3dgs,
+}
+
+impl Footprint {
+    /// The name in `model.json` and on the command line.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Ellipse => "ellipse",
+            Self::Tiles3dgs => "3dgs",
+        }
+    }
+}
+
+impl std::fmt::Display for Footprint {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
 
 /// What a render call may vary.
 #[derive(Debug, Clone, PartialEq)]
@@ -60,6 +138,8 @@ pub struct RenderOptions {
     pub far: f32,
     /// Composite the set's per-Gaussian feature vectors into a feature image (when it has them).
     pub features: bool,
+    /// Which pixels each Gaussian is evaluated at.
+    pub footprint: Footprint,
 }
 
 impl RenderOptions {
@@ -92,6 +172,7 @@ impl Default for RenderOptions {
             near: NEAR,
             far: FAR,
             features: true,
+            footprint: Footprint::Ellipse,
         }
     }
 }

@@ -2,19 +2,38 @@
 //!
 //! The scenes live in `models/fixtures/scenes/<name>.safetensors` (written by
 //! `python -m c4g.raster_scenes`; layout and contents in that folder's README.md): Gaussian
-//! parameters, a camera, a background and the float64 reference's render of them (stored as f32).
+//! parameters, a camera, a background and the float64 reference's render of them (stored as f32)
+//! with the footprint the metadata names (`footprint`; absent: the ellipse).
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
 
 use std::path::PathBuf;
 
+use c4g_renderer::raster::Footprint;
 use c4g_renderer::{
     Camera, FeatureBlock, FeatureImage, GaussianSet, Image, Intrinsics, RenderOptions,
 };
 use glam::Mat4;
 use safetensors::{Dtype, SafeTensors};
 
-/// Every fixture scene, by name.
-pub const SCENES: [&str; 5] = ["cloud", "extremes", "fullscreen", "stack", "background"];
+/// Every fixture scene rendered with the ellipse footprint, by name.
+pub const SCENES: [&str; 6] = [
+    "cloud",
+    "extremes",
+    "fullscreen",
+    "stack",
+    "background",
+    "large",
+];
+
+/// The same scenes rendered with the 3DGS footprint (each kept with its own seed).
+pub const SCENES_3DGS: [&str; 6] = [
+    "cloud-3dgs",
+    "extremes-3dgs",
+    "fullscreen-3dgs",
+    "stack-3dgs",
+    "background-3dgs",
+    "large-3dgs",
+];
 
 /// One fixture scene: what to render and what the reference rendered.
 #[derive(Debug, Clone)]
@@ -68,6 +87,17 @@ pub fn load_scene(name: &str) -> Scene {
     let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     let st = SafeTensors::deserialize(&bytes).unwrap();
     let f = |key: &str| floats(&st, key);
+    let (_, header) = SafeTensors::read_metadata(&bytes).unwrap();
+    let footprint = match header
+        .metadata()
+        .as_ref()
+        .and_then(|m| m.get("footprint"))
+        .map(String::as_str)
+    {
+        None | Some("ellipse") => Footprint::Ellipse,
+        Some("3dgs") => Footprint::Tiles3dgs,
+        Some(other) => panic!("{}: unknown footprint {other:?}", path.display()),
+    };
 
     let size = f("size");
     let (width, height) = (size[0] as u32, size[1] as u32);
@@ -110,6 +140,7 @@ pub fn load_scene(name: &str) -> Scene {
     let bg = f("background");
     let options = RenderOptions {
         background: [bg[0], bg[1], bg[2]],
+        footprint,
         ..RenderOptions::default()
     };
     let expected = Image {

@@ -9,6 +9,7 @@ use c4g_renderer::formats::{ply, splat};
 use serde::Deserialize;
 
 use super::json::JsonBody;
+use crate::keyframes::KeyframesSpec;
 use crate::wire::{self, Precision};
 use crate::{AppState, ServiceError};
 
@@ -20,6 +21,8 @@ pub struct GaussiansRequest {
     format: Option<GaussianFormat>,
     #[serde(default)]
     precision: Precision,
+    /// Exact sets at keyframes, interpolated between them (default: every time exact).
+    keyframes: Option<KeyframesSpec>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
@@ -73,7 +76,7 @@ pub async fn decode(
             "ply and splat hold one set: ask for one time (or use json or binary)",
         ));
     }
-    let frames = service.decode(&id, times).await?;
+    let frames = service.decode(&id, times, request.keyframes).await?;
     Ok(match format {
         GaussianFormat::Json => Json(wire::json(&frames)).into_response(),
         GaussianFormat::Binary => (

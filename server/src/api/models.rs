@@ -25,7 +25,7 @@ pub fn describe(service: &Service) -> Value {
         "input": { "width": m.input.width, "height": m.input.height },
         "gaussians_per_set": m.gaussian_count,
         "feature_lifting": m.feature_decoder_width(),
-        "time_policy": format!("{:?}", engine.options().time_policy).to_lowercase(),
+        "time_policy": engine.time_policy().name(),
         "renderer": service.renderer.name(),
         "store_key": service.model_key(),
         "limits": {

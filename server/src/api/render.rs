@@ -10,6 +10,7 @@ use serde::Deserialize;
 use super::json::JsonBody;
 use crate::camera::CameraSpec;
 use crate::image_formats::{ImageFormat, encode_image, encode_mp4, to_rgb8};
+use crate::keyframes::KeyframesSpec;
 use crate::service::{PathRequest, ViewRequest};
 use crate::{AppState, ServiceError};
 
@@ -33,6 +34,8 @@ pub struct RenderRequest {
     start: Option<f64>,
     end: Option<f64>,
     fps: Option<f64>,
+    /// A trajectory's sets from keyframes, interpolated between them (default: every frame exact).
+    keyframes: Option<KeyframesSpec>,
 }
 
 pub async fn render(
@@ -47,9 +50,10 @@ pub async fn render(
             || request.fps.is_some()
             || request.start.is_some()
             || request.end.is_some()
+            || request.keyframes.is_some()
         {
             return Err(ServiceError::invalid(
-                "frames, fps, start and end describe a trajectory: add \"trajectory\" or \"cameras\"",
+                "frames, fps, start, end and keyframes describe a trajectory: add \"trajectory\" or \"cameras\"",
             ));
         }
         let format = request.format.unwrap_or(ImageFormat::Png);
@@ -102,10 +106,14 @@ pub async fn render(
     };
     let record = service.store.get(&id)?;
     let plan = service.plan_path(&record, &path)?;
+    let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
+    let keyframes = service.keyframes(request.keyframes.as_ref(), &times)?;
     let encoding = service.store.encoding(&id).await?;
     let background = path.background;
     let images = service
-        .work(move |service| service.render_path_now(&encoding, &plan, background))
+        .work(move |service| {
+            service.render_path_keyframed_now(&encoding, &plan, background, &keyframes)
+        })
         .await?;
     let (w, h) = images.first().map_or((0, 0), |i| (i.width, i.height));
     let frames: Vec<Vec<u8>> = images.iter().map(to_rgb8).collect();

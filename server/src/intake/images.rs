@@ -13,7 +13,7 @@ use image::{ImageReader, RgbImage};
 use super::sampling::select;
 use super::{
     DEFAULT_IMAGE_FPS, Intake, IntakeOptions, Media, MediaKind, SourceInfo, TimedFrame,
-    check_duration, check_frame_count, check_frame_size,
+    check_duration, check_frame_count, check_frame_size, frame_step,
 };
 use crate::ServiceError;
 use crate::config::Limits;
@@ -80,6 +80,7 @@ pub fn read(
             })
         })
         .collect::<Result<Vec<_>, ServiceError>>()?;
+    let fps = options.fps.unwrap_or(DEFAULT_IMAGE_FPS);
     Ok(Intake {
         frames,
         source: SourceInfo {
@@ -88,8 +89,9 @@ pub fn read(
             width,
             height,
             duration: times.last().copied().unwrap_or(0.0),
-            fps: options.fps.unwrap_or(DEFAULT_IMAGE_FPS),
+            fps,
         },
+        frame_step: frame_step(&times, fps),
     })
 }
 

@@ -127,6 +127,28 @@ pub struct Intake {
     pub frames: Vec<TimedFrame>,
     /// The source.
     pub source: SourceInfo,
+    /// Seconds between source frames ([`frame_step`]), when known: the time policy's floor.
+    pub frame_step: Option<f64>,
+}
+
+/// The source's frame step: the median of the positive gaps between consecutive frame times when
+/// there are any, else the frame period `1 / fps`, else unknown.
+///
+/// The median, not the smallest gap: C4G was trained on integer frame indices, so "one source
+/// frame" is what the time policy's floor stands for, and real files (variable frame rate, a
+/// near-duplicate timestamp, a dropped frame) have outlying gaps that must not set it. A tiny
+/// floor would let the normalised times grow as large as span / step.
+pub fn frame_step(times: &[f64], fps: f64) -> Option<f64> {
+    let positive = |s: &f64| s.is_finite() && *s > 0.0;
+    let mut gaps: Vec<f64> = times
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .filter(positive)
+        .collect();
+    gaps.sort_by(f64::total_cmp);
+    gaps.get(gaps.len() / 2)
+        .copied()
+        .or_else(|| Some(1.0 / fps).filter(positive))
 }
 
 /// Where intake finds its tools and puts its temporary files.
@@ -290,4 +312,23 @@ fn check_duration(duration: f64, limits: &Limits) -> Result<(), ServiceError> {
         )));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_frame_step_is_the_median_gap_between_source_frames_else_the_frame_period() {
+        let at_30fps: Vec<f64> = (0..10).map(|i| f64::from(i) / 30.0).collect();
+        let step = frame_step(&at_30fps, 25.0).unwrap();
+        assert!((step - 1.0 / 30.0).abs() < 1e-12, "{step}");
+        // A near-duplicate timestamp and a dropped frame do not set the step.
+        let step = frame_step(&[0.0, 0.1, 0.100_001, 0.2, 0.3, 0.5], 10.0).unwrap();
+        assert!((step - 0.1).abs() < 1e-9, "{step}");
+        // One frame: the declared rate; no rate either: unknown.
+        assert_eq!(frame_step(&[0.0], 10.0), Some(0.1));
+        assert_eq!(frame_step(&[0.0], 0.0), None);
+        assert_eq!(frame_step(&[], f64::NAN), None);
+    }
 }

@@ -19,7 +19,7 @@ use tokio::process::Command;
 use super::sampling::select;
 use super::{
     Intake, IntakeOptions, IntakeTools, MediaKind, SourceInfo, TimedFrame, check_duration,
-    check_frame_count, check_frame_size,
+    check_frame_count, check_frame_size, frame_step,
 };
 use crate::ServiceError;
 use crate::config::Limits;
@@ -68,6 +68,13 @@ pub async fn read(
                 image,
             })
             .collect();
+        let fps = stream.frame_rate().unwrap_or_else(|| {
+            if duration > 0.0 {
+                (times.len() - 1) as f64 / duration
+            } else {
+                0.0
+            }
+        });
         Ok(Intake {
             frames,
             source: SourceInfo {
@@ -76,14 +83,9 @@ pub async fn read(
                 width,
                 height,
                 duration,
-                fps: stream.frame_rate().unwrap_or_else(|| {
-                    if duration > 0.0 {
-                        (times.len() - 1) as f64 / duration
-                    } else {
-                        0.0
-                    }
-                }),
+                fps,
             },
+            frame_step: frame_step(&times, fps),
         })
     };
     match tokio::time::timeout_at(deadline, work).await {

@@ -6,7 +6,7 @@
 use super::TILE;
 use super::bin::TileGrid;
 use super::project::Splat;
-use crate::raster::{ALPHA_MAX, ALPHA_MIN, Image, SIGMA_EXTENT, TRANSMITTANCE_MIN};
+use crate::raster::{ALPHA_MAX, ALPHA_MIN, Footprint, Image, SIGMA_EXTENT, TRANSMITTANCE_MIN};
 
 /// The planes of one row of tiles (`TILE` pixel rows), for one task to write.
 pub(super) struct TileRow<'a> {
@@ -112,7 +112,17 @@ impl TileAcc {
     }
 }
 
-/// Composites `list` (indices into `splats`, front to back) over the pixels of tile `t`.
+/// The `d²` beyond which `footprint` evaluates no pixel: 3 sigma for the ellipse; none for the
+/// 3DGS tiles, whose boxes are the tiles themselves.
+pub(super) fn d2_cut(footprint: Footprint) -> f32 {
+    match footprint {
+        Footprint::Ellipse => SIGMA_EXTENT * SIGMA_EXTENT,
+        Footprint::Tiles3dgs => f32::INFINITY,
+    }
+}
+
+/// Composites `list` (indices into `splats`, front to back) over the pixels of tile `t`; pixels
+/// of a splat's box with `d²` above `cut` ([`d2_cut`]) are not evaluated.
 pub(super) fn blend_tile(
     out: &mut TileAcc,
     grid: &TileGrid,
@@ -120,12 +130,12 @@ pub(super) fn blend_tile(
     list: &[u32],
     splats: &[Splat],
     features: Option<(usize, &[f32])>,
+    cut: f32,
 ) {
     let (x0, y0, w, h) = grid.rect(t);
     let channels = features.map_or(0, |(c, _)| c);
     let mut done = [false; TILE_PIXELS];
     let mut live = (w * h) as usize;
-    let cut = SIGMA_EXTENT * SIGMA_EXTENT;
     for &index in list {
         let s = &splats[index as usize];
         let feature_row = features.map(|(c, values)| {
@@ -158,6 +168,8 @@ pub(super) fn blend_tile(
                     continue;
                 }
                 let e = (px - s.x0) as f32 + 0.5 - s.u - centre;
+                // A sum of non-negative terms: 3DGS's skip where the exponent -d²/2 is positive
+                // (an f32 artefact of its expanded form) cannot fire here.
                 let d2 = s.a * e * e + row_d2;
                 if d2 > cut {
                     continue;

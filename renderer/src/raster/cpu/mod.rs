@@ -4,9 +4,9 @@
 //! Three stages, the 3DGS layout on a CPU:
 //! 1. **Project** every Gaussian (in parallel, in f64: huge or tiny scales and focal lengths make
 //!    f32 covariances overflow or cancel) to a `Splat`: its pixel centre, its 2D covariance in a
-//!    form whose Mahalanobis distance is a sum of non-negative terms, its depth and a
-//!    conservative pixel box around the pixels its exact test can reach. Invalid ones are dropped
-//!    here.
+//!    form whose Mahalanobis distance is a sum of non-negative terms, its depth and its pixel box:
+//!    for the ellipse footprint a conservative box around the pixels its exact test can reach, for
+//!    the 3DGS footprint the pixels of its 3DGS tiles. Invalid ones are dropped here.
 //! 2. **Bin** splats into 16×16-pixel tiles. Splats are sorted once by (depth, index); a stable
 //!    counting sort by tile then leaves every tile's list in depth order without sorting tiles
 //!    (chunks of splats count their pairs per tile with 2D difference arrays, then write in
@@ -14,8 +14,10 @@
 //!    consecutive tiles at a time, sized so that the pair buffer stays under [`PAIR_BUDGET`]
 //!    entries: a million screen-filling Gaussians cost time, not unbounded memory.
 //! 3. **Blend** each tile (tiles in parallel): per splat and row, only the pixels of the row that
-//!    its ellipse can reach are visited; a pixel composites front to back and stops at the
-//!    transmittance floor; a tile stops when all its pixels have.
+//!    its ellipse can reach are visited (3 sigma for the ellipse footprint, the 1/255 contour for
+//!    the 3DGS one: a pixel beyond it fails the alpha test, so skipping it is evaluating it); a
+//!    pixel composites front to back and stops at the transmittance floor; a tile stops when all
+//!    its pixels have.
 //!
 //! Per-pixel work is in f32, on pixel offsets from the splat's centre that are exact wherever the
 //! splat sits in the image (its centre is stored relative to its box's corner).
@@ -36,7 +38,7 @@ use rayon::prelude::*;
 use super::{FeatureImage, Image, Rasterizer, RenderOptions};
 use crate::{Camera, GaussianSet, RendererError};
 use bin::{Chunks, TileGrid};
-use blend::{TileAcc, TileRow, blend_tile};
+use blend::{TileAcc, TileRow, blend_tile, d2_cut};
 use project::{Splat, View};
 
 /// Tile edge in pixels.
@@ -150,6 +152,7 @@ fn render_frame(
         }),
     };
     let mut rows = TileRow::split(&grid, &mut image);
+    let cut = d2_cut(options.footprint);
     for band in grid.bands(&chunks.totals, pair_budget) {
         let pairs = chunks.fill_band(&grid, &splats, band.clone());
         let (first, last) = (band.start / grid.tiles_x, (band.end - 1) / grid.tiles_x);
@@ -167,6 +170,7 @@ fn render_frame(
                     &pairs.splats[pairs.offsets[k]..pairs.offsets[k + 1]],
                     &splats,
                     features.map(|f| (f.width(), f.values())),
+                    cut,
                 );
                 row.write(&grid, t, &acc, options.background);
             }

@@ -1,12 +1,20 @@
 //! Stage 1, projection: each Gaussian, in f64, to the `Splat` the pixels see (pixel centre, a
-//! cancellation-free form of its 2D covariance, depth, a conservative pixel box), or to nothing
-//! when the forward model skips it or it reaches no pixel. Apart from binning and blending
-//! because it is the only stage that reads the camera and the Gaussians' parameters.
+//! cancellation-free form of its 2D covariance, depth, its pixel box), or to nothing when the
+//! forward model skips it or it reaches no pixel. The box is the footprint's: for
+//! [`Footprint::Ellipse`] a conservative box around the pixels its exact test can reach, for
+//! [`Footprint::Tiles3dgs`] the pixels of its 3DGS tiles (clipped to the image). Apart from binning
+//! and blending because it is the only stage that reads the camera and the Gaussians' parameters.
 
 use glam::{DMat3, DQuat, DVec3};
 
 use super::TILE;
-use crate::raster::{ALPHA_MIN, EPS2D, FOV_CLAMP, RenderOptions, SIGMA_EXTENT};
+use crate::raster::{
+    ALPHA_MIN, DISCRIMINANT_FLOOR_3DGS, EPS2D, FOV_CLAMP, Footprint, RenderOptions, SIGMA_EXTENT,
+    TILE_3DGS,
+};
+
+// The 3DGS footprint's tiles are binned as they are: one of ours is one of theirs.
+const _: () = assert!(TILE == TILE_3DGS);
 use crate::{Camera, GaussianSet};
 
 /// A Gaussian as the pixels see it.
@@ -22,14 +30,15 @@ pub(super) struct Splat {
     pub(super) a: f32,
     pub(super) k: f32,
     pub(super) inv_syy: f32,
-    /// Squared reach: `d²` beyond this cannot contribute (3 sigma, or less for faint splats).
+    /// Squared reach: `d²` beyond this cannot contribute (for the ellipse 3 sigma, or less for
+    /// faint splats; for the 3DGS tiles where alpha falls below `ALPHA_MIN`).
     pub(super) reach2: f32,
     pub(super) opacity: f32,
     pub(super) depth: f32,
     pub(super) color: [f32; 3],
     /// Index in the Gaussian set.
     pub(super) index: u32,
-    /// Inclusive pixel box, inside the image.
+    /// Inclusive pixel box, inside the image: no pixel outside it is evaluated.
     pub(super) x0: u32,
     pub(super) y0: u32,
     pub(super) x1: u32,
@@ -59,6 +68,7 @@ pub(super) struct View {
     lim_y: f64,
     near: f64,
     far: f64,
+    footprint: Footprint,
     pub(super) width: u32,
     pub(super) height: u32,
 }
@@ -84,6 +94,7 @@ impl View {
             lim_y: fov_clamp * f64::from(k.height) / (2.0 * fy),
             near: f64::from(options.near),
             far: f64::from(options.far),
+            footprint: options.footprint,
             width: k.width,
             height: k.height,
         }
@@ -149,13 +160,25 @@ impl View {
 
         let u = self.fx * p_cam.x / z + self.cx;
         let v = self.fy * p_cam.y / z + self.cy;
-        // Pixels can be reached only where d² ≤ 9 and opacity · exp(-d²/2) ≥ 1/255; along x the
-        // ellipse d² ≤ r² spans u ± r·√Σxx (and likewise along y).
-        let reach2 = f64::from(SIGMA_EXTENT * SIGMA_EXTENT)
-            .min(2.0 * (f64::from(o) / f64::from(ALPHA_MIN)).ln());
-        let extent = reach2.sqrt();
-        let (x0, x1) = pixel_span(u, extent * sxx.sqrt(), self.width)?;
-        let (y0, y1) = pixel_span(v, extent * syy.sqrt(), self.height)?;
+        // Alpha is at least 1/255 only where opacity · exp(-d²/2) is.
+        let alpha_reach2 = 2.0 * (f64::from(o) / f64::from(ALPHA_MIN)).ln();
+        let (reach2, (x0, x1), (y0, y1)) = match self.footprint {
+            Footprint::Ellipse => {
+                // Pixels can be reached only where d² ≤ 9 as well; along x the ellipse d² ≤ r²
+                // spans u ± r·√Σxx (and likewise along y).
+                let reach2 = f64::from(SIGMA_EXTENT * SIGMA_EXTENT).min(alpha_reach2);
+                let extent = reach2.sqrt();
+                (
+                    reach2,
+                    pixel_span(u, extent * sxx.sqrt(), self.width)?,
+                    pixel_span(v, extent * syy.sqrt(), self.height)?,
+                )
+            }
+            Footprint::Tiles3dgs => {
+                let [x, y] = tiles_3dgs([u, v], [mxx, sxy, myy], eps, [self.width, self.height])?;
+                (alpha_reach2, x, y)
+            }
+        };
         Some(Splat {
             u: (u - f64::from(x0)) as f32,
             v: (v - f64::from(y0)) as f32,
@@ -173,6 +196,37 @@ impl View {
             y1,
         })
     }
+}
+
+/// The pixels (inclusive ranges along x and y, inside the image) of the 3DGS tiles of a splat
+/// centred at `centre` whose covariance is `[[mxx + eps, mxy], [mxy, myy + eps]]`, in f64;
+/// `None` when the tile range is empty. The rule is `super::super`'s (`Footprint::Tiles3dgs`).
+fn tiles_3dgs(
+    centre: [f64; 2],
+    [mxx, mxy, myy]: [f64; 3],
+    eps: f64,
+    size: [u32; 2],
+) -> Option<[(u32, u32); 2]> {
+    let mid = 0.5 * (mxx + myy) + eps;
+    // 3DGS's `mid² − det`, as a sum of squares (the dilation cancels in the difference).
+    let half_gap = 0.5 * (mxx - myy);
+    let discriminant = half_gap * half_gap + mxy * mxy;
+    let lambda = mid + discriminant.max(f64::from(DISCRIMINANT_FLOOR_3DGS)).sqrt();
+    let radius = (f64::from(SIGMA_EXTENT) * lambda.sqrt()).ceil();
+    let tile = f64::from(TILE_3DGS);
+    let span = |c: f64, size: u32| {
+        // 3DGS's pixel coordinates put pixel i at i, ours at i + 0.5.
+        let p = c - 0.5;
+        let tiles = f64::from(size.div_ceil(TILE_3DGS));
+        let first = ((p - radius) / tile).floor().clamp(0.0, tiles);
+        let end = ((p + radius + tile - 1.0) / tile).floor().clamp(0.0, tiles);
+        // False for NaN too. Both are whole numbers within [0, tiles], so the casts are exact.
+        (first < end).then(|| {
+            let x0 = first as u32 * TILE_3DGS;
+            (x0, (end as u32 * TILE_3DGS).min(size) - 1)
+        })
+    };
+    Some([span(centre[0], size[0])?, span(centre[1], size[1])?])
 }
 
 /// Pixels `i` (inclusive range, inside `0..size`) whose centre `i + 0.5` may lie within `radius` of

@@ -1,7 +1,8 @@
 // Blending: one 16×16 workgroup per tile of a band, one invocation per pixel. The tile's splats
 // (front to back) are staged through workgroup memory 256 at a time; every pixel composites them
-// with the forward model's cuts and stops at the transmittance floor; the tile stops when all its
-// pixels have.
+// with the forward model's cuts (the 3-sigma cut for the ellipse footprint; for the 3DGS one none,
+// but its skip where the exponent is positive) and stops at the transmittance floor; the tile
+// stops when all its pixels have.
 //
 // Per-pixel state lives in storage buffers so that a frame can be blended in several depth-ordered
 // chunks of splats (when its pairs exceed what one pass can hold): transmittance, negated once the
@@ -20,6 +21,8 @@ const ALPHA_MIN: f32 = 1.0 / 255.0;
 const TRANSMITTANCE_MIN: f32 = 1e-4;
 const TILE: u32 = 16u;
 const BATCH: u32 = 256u;
+// `p.footprint`: 0 the ellipse, 1 the 3DGS tiles.
+const FOOTPRINT_3DGS: u32 = 1u;
 
 struct Params {
     width: u32,
@@ -31,7 +34,7 @@ struct Params {
     // Feature group of this pass and how many groups a pixel holds.
     group: u32,
     groups: u32,
-    unused: u32,
+    footprint: u32,
 }
 
 @group(0) @binding(0) var<uniform> p: Params;
@@ -80,6 +83,7 @@ fn composite(wid: vec3<u32>, lid: vec3<u32>, li: u32, px_in: Pixel) -> Pixel {
     let fx = f32(wid.x * TILE + lid.x) + 0.5;
     let fy = f32(p.y0 + wid.y * TILE + lid.y) + 0.5;
     let cut = SIGMA_EXTENT * SIGMA_EXTENT;
+    let tiles_3dgs = p.footprint == FOOTPRINT_3DGS;
     for (var batch = range.x; batch < range.y; batch += BATCH) {
         let k = batch + li;
         if k < range.y {
@@ -100,7 +104,10 @@ fn composite(wid: vec3<u32>, lid: vec3<u32>, li: u32, px_in: Pixel) -> Pixel {
                 let dx = fx - c.x;
                 let dy = fy - c.y;
                 let d2 = q.x * dx * dx + 2.0 * q.y * dx * dy + q.z * dy * dy;
-                if d2 > cut {
+                // 3DGS evaluates every pixel of its tiles but skips where the exponent -d²/2 is
+                // positive: never in exact arithmetic, sometimes in f32 (as here) very near the
+                // centre of an extremely thin footprint.
+                if select(d2 > cut, d2 < 0.0, tiles_3dgs) {
                     continue;
                 }
                 // d² ≥ 0 exactly; clamping keeps a rounding error from lifting alpha above opacity.

@@ -17,7 +17,7 @@
 
 use crate::{Camera, GaussianSet, RendererError};
 
-use super::super::{FOV_CLAMP, FeatureImage, Image, RenderOptions};
+use super::super::{FOV_CLAMP, FeatureImage, Footprint, Image, RenderOptions};
 use super::recorder::{Use, Work};
 use super::sort::{Pairs, bits_for, radix_sort, scan};
 
@@ -29,6 +29,14 @@ const GROUP: u32 = 256;
 const PARAMS: u64 = crate::CANONICAL_CHANNELS as u64;
 /// Bytes per Gaussian of the projected splat (3 vec4).
 const SPLAT_BYTES: u64 = 48;
+/// How the kernels (`project.wgsl`'s `cam.keys.w`, `blend.wgsl`'s `p.footprint`) name a footprint.
+fn footprint_code(footprint: Footprint) -> u32 {
+    match footprint {
+        Footprint::Ellipse => 0,
+        Footprint::Tiles3dgs => 1,
+    }
+}
+
 /// Bytes of band state per pixel: transmittance and (r, g, b, depth), plus 16 per feature group.
 const STATE_BYTES: u64 = 4 + 16;
 const FEATURE_GROUP_BYTES: u64 = 16;
@@ -172,7 +180,7 @@ pub(super) fn render(
     let n = gaussian_count(work, set)?;
     let buffers = project_and_sort(work, set, camera, options, &plan, n)?;
     for band in Band::all(&plan) {
-        if blend_band(work, &plan, &band, &buffers, n)? {
+        if blend_band(work, &plan, &band, &buffers, n, options.footprint)? {
             read_band(work, &plan, &band, &buffers, options, &mut image)?;
         }
     }
@@ -279,6 +287,7 @@ fn blend_band(
     band: &Band,
     buffers: &FrameBuffers,
     n: u32,
+    footprint: Footprint,
 ) -> Result<bool, RendererError> {
     let mut first = 0;
     let mut blended = false;
@@ -294,7 +303,7 @@ fn blend_band(
             chunk_that_fits(work, buffers, len, plan.pair_cap)?
         };
         let sorted = bin_chunk(work, plan, band, buffers, params, take, pairs)?;
-        blend_chunk(work, plan, band, buffers, &sorted, !blended)?;
+        blend_chunk(work, plan, band, buffers, &sorted, !blended, footprint)?;
         blended = true;
         first += take;
     }
@@ -405,6 +414,7 @@ fn blend_chunk(
     buffers: &FrameBuffers,
     sorted: &Pairs,
     first_chunk: bool,
+    footprint: Footprint,
 ) -> Result<(), RendererError> {
     let grid = super::device::Grid {
         x: plan.tiles_x,
@@ -420,7 +430,7 @@ fn blend_chunk(
             u32::from(first_chunk),
             group,
             plan.groups,
-            0,
+            footprint_code(footprint),
         ]
     };
     if let Some(features) = &buffers.features {
@@ -587,7 +597,7 @@ fn camera_uniform(
         options.near.to_bits(),
         skipped_key,
         plan.tiles_x,
-        0,
+        footprint_code(options.footprint),
     ]);
     words
 }

@@ -199,7 +199,9 @@ fn kernel(
 
 #[cfg(test)]
 mod tests {
-    use super::super::super::{ALPHA_MAX, ALPHA_MIN, EPS2D, SIGMA_EXTENT, TRANSMITTANCE_MIN};
+    use super::super::super::{
+        ALPHA_MAX, ALPHA_MIN, DISCRIMINANT_FLOOR_3DGS, EPS2D, SIGMA_EXTENT, TRANSMITTANCE_MIN,
+    };
 
     /// The value of `const NAME: f32 = ...;` in `source` (a number or a quotient of two).
     fn constant(source: &str, name: &str) -> Option<f32> {
@@ -222,6 +224,10 @@ mod tests {
         assert_eq!(constant(project, "EPS2D"), Some(EPS2D));
         assert_eq!(constant(project, "SIGMA_EXTENT"), Some(SIGMA_EXTENT));
         assert_eq!(constant(project, "ALPHA_MIN"), Some(ALPHA_MIN));
+        assert_eq!(
+            constant(project, "DISCRIMINANT_FLOOR_3DGS"),
+            Some(DISCRIMINANT_FLOOR_3DGS)
+        );
         assert_eq!(constant(blend, "SIGMA_EXTENT"), Some(SIGMA_EXTENT));
         assert_eq!(constant(blend, "ALPHA_MAX"), Some(ALPHA_MAX));
         assert_eq!(constant(blend, "ALPHA_MIN"), Some(ALPHA_MIN));

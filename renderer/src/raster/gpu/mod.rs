@@ -3,14 +3,16 @@
 //!
 //! The pipeline is the tile-based one of 3D Gaussian splatting, every step on the GPU:
 //! - `project.wgsl`: one invocation per Gaussian: skip rules, EWA projection with the FOV clamp,
-//!   conic, depth key and the rectangle of 16×16 tiles its 3-sigma ellipse can reach;
+//!   conic, depth key and the rectangle of 16×16 tiles of its footprint (around the 3-sigma
+//!   ellipse, or the 3DGS tiles);
 //! - `sort.wgsl` + `scan.wgsl`: a stable 4-bit LSD radix sort of all Gaussians by depth (ties stay
 //!   in index order), then per band of tile rows: tile counts, a prefix sum, one (tile, Gaussian)
 //!   pair per covered tile emitted in depth order, a stable radix sort by tile alone (which keeps
 //!   the depth order inside each tile) and each tile's range (`tiles.wgsl`);
 //! - `blend.wgsl`: one 16×16 workgroup per tile sharing batches of 256 splats in workgroup
 //!   memory, front to back, each pixel stopping at the transmittance floor and the tile when all
-//!   its pixels have; colour and depth in one pass, features 4 channels a pass.
+//!   its pixels have (the ellipse footprint cuts at 3 sigma, the 3DGS one evaluates every pixel of
+//!   its tiles); colour and depth in one pass, features 4 channels a pass.
 //!
 //! `frame.rs` says how a frame is cut to respect the device's limits (bands of tile rows for
 //! images whose state exceeds the largest storage binding, depth-ordered chunks for more pairs
@@ -19,9 +21,9 @@
 //! memory a rasterizer holds is about twice what its largest frame needed.
 //!
 //! Agreement: f32 throughout, with the projection rescaled against overflow; on the fixture
-//! scenes it matches the float64 reference to ~1e-5 (the tolerances are those of the CPU
-//! rasterizer: RGB, alpha, features ≤ 2e-3 absolute, depth ≤ 1e-3 relative where alpha > 0.5),
-//! see `tests/gpu.rs`.
+//! scenes, in both footprints, it matches the float64 reference to ~1e-5 (the tolerances are those
+//! of the CPU rasterizer: RGB, alpha, features ≤ 2e-3 absolute, depth ≤ 1e-3 relative where
+//! alpha > 0.5), see `tests/gpu.rs`.
 
 mod device;
 mod frame;

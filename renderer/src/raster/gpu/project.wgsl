@@ -1,6 +1,7 @@
 // Projection: one invocation per Gaussian turns its 14 canonical parameters into a splat (what the
-// pixels need), a tile rectangle (which tiles it may reach) and a depth key for the global sort.
-// Skipped Gaussians get an empty rectangle and the largest key, so they sort last and emit nothing.
+// pixels need), a tile rectangle (which tiles it may reach: around its 3-sigma ellipse, or its 3DGS
+// tiles, by the footprint) and a depth key for the global sort. Skipped Gaussians get an empty
+// rectangle and the largest key, so they sort last and emit nothing.
 //
 // The 2D covariance is built as M Mᵀ + EPS2D·I with M = J W R S (2×3), rescaled by the largest
 // entry of M first: that keeps f32 from overflowing for huge scales or focal lengths, and the
@@ -9,7 +10,10 @@
 const EPS2D: f32 = 0.3;
 const SIGMA_EXTENT: f32 = 3.0;
 const ALPHA_MIN: f32 = 1.0 / 255.0;
+const DISCRIMINANT_FLOOR_3DGS: f32 = 0.1;
 const TILE: u32 = 16u;
+// `cam.keys.w`: the footprint (0 the ellipse, 1 the 3DGS tiles).
+const FOOTPRINT_3DGS: u32 = 1u;
 
 struct Camera {
     // Rows of the world-to-camera transform [R | t].
@@ -22,7 +26,7 @@ struct Camera {
     clip: vec4<f32>,
     // width, height, number of Gaussians, workgroups along x of this dispatch.
     image: vec4<u32>,
-    // bits of near, the key of a skipped Gaussian, tiles along x, unused.
+    // bits of near, the key of a skipped Gaussian, tiles along x, the footprint.
     keys: vec4<u32>,
 }
 
@@ -61,6 +65,18 @@ fn pixel_span(centre: f32, radius: f32, size: u32) -> vec2<i32> {
         return vec2<i32>(1, 0);
     }
     return vec2<i32>(i32(max(lo, 0.0)), i32(min(hi, last)));
+}
+
+// The 3DGS tiles [first, end) along one axis of a splat centred at `centre` with radius `radius`
+// (pixels), among `tiles`: 3DGS's pixel coordinates put pixel i at i, ours at i + 0.5.
+fn tiles_3dgs(centre: f32, radius: f32, tiles: u32) -> vec2<u32> {
+    let p = centre - 0.5;
+    let t = f32(TILE);
+    let n = f32(tiles);
+    // Clamped as floats, so that off-screen or infinite ends convert exactly.
+    let first = clamp(floor((p - radius) / t), 0.0, n);
+    let end = clamp(floor((p + radius + t - 1.0) / t), 0.0, n);
+    return vec2<u32>(u32(first), u32(end));
 }
 
 @compute @workgroup_size(256)
@@ -147,25 +163,45 @@ fn project(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
         return;
     }
 
-    // Pixels are reached only where d² ≤ 9 and opacity · exp(-d²/2) ≥ 1/255; along x the ellipse
-    // d² ≤ r² spans u ± r·√Σxx (and likewise along y).
-    let extent = sqrt(clamp(2.0 * log(opacity / ALPHA_MIN), 0.0, SIGMA_EXTENT * SIGMA_EXTENT));
-    let span_x = pixel_span(u, extent * s * sqrt(sxx), cam.image.x);
-    let span_y = pixel_span(v, extent * s * sqrt(syy), cam.image.y);
-    if span_x.x > span_x.y || span_y.x > span_y.y {
-        skip(i);
-        return;
+    var rect: vec4<u32>;
+    if cam.keys.w == FOOTPRINT_3DGS {
+        // λ = mid + √max(floor, ((a − c)/2)² + b²) in pixels², from the rescaled entries
+        // (the sum of squares is 3DGS's mid² − det without its cancellation); r = ⌈3√λ⌉.
+        let half_gap = 0.5 * (l0 - l1);
+        let discriminant = half_gap * half_gap + sxy * sxy;
+        let floor_n = DISCRIMINANT_FLOOR_3DGS / (s * s) / (s * s);
+        let lambda_n = 0.5 * (sxx + syy) + sqrt(max(floor_n, discriminant));
+        let radius = ceil(SIGMA_EXTENT * s * sqrt(lambda_n));
+        let tiles_y = (cam.image.y + TILE - 1u) / TILE;
+        let x = tiles_3dgs(u, radius, cam.keys.z);
+        let y = tiles_3dgs(v, radius, tiles_y);
+        if x.x >= x.y || y.x >= y.y {
+            skip(i);
+            return;
+        }
+        rect = vec4<u32>(x.x, y.x, x.y, y.y);
+    } else {
+        // Pixels are reached only where d² ≤ 9 and opacity · exp(-d²/2) ≥ 1/255; along x the
+        // ellipse d² ≤ r² spans u ± r·√Σxx (and likewise along y).
+        let extent = sqrt(clamp(2.0 * log(opacity / ALPHA_MIN), 0.0, SIGMA_EXTENT * SIGMA_EXTENT));
+        let span_x = pixel_span(u, extent * s * sqrt(sxx), cam.image.x);
+        let span_y = pixel_span(v, extent * s * sqrt(syy), cam.image.y);
+        if span_x.x > span_x.y || span_y.x > span_y.y {
+            skip(i);
+            return;
+        }
+        rect = vec4<u32>(
+            u32(span_x.x) / TILE,
+            u32(span_y.x) / TILE,
+            u32(span_x.y) / TILE + 1u,
+            u32(span_y.y) / TILE + 1u,
+        );
     }
 
     splats[3u * i] = vec4<f32>(u, v, opacity, z);
     splats[3u * i + 1u] = vec4<f32>(conic, 0.0);
     splats[3u * i + 2u] = vec4<f32>(color, z);
-    rects[i] = vec4<u32>(
-        u32(span_x.x) / TILE,
-        u32(span_y.x) / TILE,
-        u32(span_x.y) / TILE + 1u,
-        u32(span_y.y) / TILE + 1u,
-    );
+    rects[i] = rect;
     // z ≥ near > 0, so its bits order like its value.
     keys[i] = bitcast<u32>(z) - cam.keys.x;
     values[i] = i;
