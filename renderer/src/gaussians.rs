@@ -215,6 +215,39 @@ impl GaussianSet {
         self.features.take()
     }
 
+    /// The Gaussians whose entry in `keep` is true, in order, with their feature vectors.
+    ///
+    /// Fails when `keep` does not hold one entry per Gaussian.
+    pub fn select(&self, keep: &[bool]) -> Result<Self, RendererError> {
+        check_len("the selection", self.len(), keep.len())?;
+        fn pick<T: Copy>(column: &[T], keep: &[bool]) -> Vec<T> {
+            column
+                .iter()
+                .zip(keep)
+                .filter_map(|(v, &k)| k.then_some(*v))
+                .collect()
+        }
+        let mut set = Self::new(
+            pick(&self.positions, keep),
+            pick(&self.scales, keep),
+            pick(&self.rotations, keep),
+            pick(&self.opacities, keep),
+            pick(&self.colors, keep),
+        )?;
+        if let Some(features) = &self.features {
+            let width = features.width();
+            let rows: Vec<f32> = features
+                .values()
+                .chunks_exact(width)
+                .zip(keep)
+                .filter(|(_, k)| **k)
+                .flat_map(|(row, _)| row.iter().copied())
+                .collect();
+            set = set.with_features(FeatureBlock::new(width, rows)?)?;
+        }
+        Ok(set)
+    }
+
     /// Number of Gaussians.
     pub fn len(&self) -> usize {
         self.positions.len()

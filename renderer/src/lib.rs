@@ -2,8 +2,8 @@
 //!
 //! What a decoded moment of a clip *is* ([`GaussianSet`]), what looks at it ([`Camera`]), how a
 //! camera moves ([`trajectory`]), how scenes are stored ([`formats`]), how they become images
-//! ([`raster`]) and how images are compared ([`metrics`]). Nothing here knows about models, ONNX or
-//! networks.
+//! ([`raster`]), how images are compared ([`metrics`]) and which Gaussians a scene needs
+//! ([`pruning`]). Nothing here knows about models, ONNX or networks.
 
 /// Pinhole cameras: intrinsics, world-to-camera poses, OpenCV axes.
 mod camera;
@@ -15,6 +15,8 @@ pub mod formats;
 mod gaussians;
 /// Image quality: PSNR and SSIM, optionally masked.
 pub mod metrics;
+/// Model only what a scene requires: invisible, negligible and static Gaussians of a clip.
+pub mod pruning;
 /// Rasterizers: the forward model, its constants and the CPU (and, with `gpu`, wgpu) renderers.
 pub mod raster;
 /// Camera paths: interpolation and the orbit, spiral and dolly presets.

@@ -122,7 +122,10 @@ pub(super) fn d2_cut(footprint: Footprint) -> f32 {
 }
 
 /// Composites `list` (indices into `splats`, front to back) over the pixels of tile `t`; pixels
-/// of a splat's box with `d²` above `cut` ([`d2_cut`]) are not evaluated.
+/// of a splat's box with `d²` above `cut` ([`d2_cut`]) are not evaluated. With `contributions`,
+/// each splat's blending weights over the tile's pixels (Σ transmittance · alpha) are appended to
+/// it as (Gaussian index, sum).
+#[allow(clippy::too_many_arguments)]
 pub(super) fn blend_tile(
     out: &mut TileAcc,
     grid: &TileGrid,
@@ -131,6 +134,7 @@ pub(super) fn blend_tile(
     splats: &[Splat],
     features: Option<(usize, &[f32])>,
     cut: f32,
+    mut contributions: Option<&mut Vec<(u32, f32)>>,
 ) {
     let (x0, y0, w, h) = grid.rect(t);
     let channels = features.map_or(0, |(c, _)| c);
@@ -145,6 +149,7 @@ pub(super) fn blend_tile(
         // The rows' culls are exact-math bounds of `d² ≤ reach2`, widened for f32 rounding;
         // the test below decides.
         let reach2 = s.reach2 * 1.001 + 1e-3;
+        let mut contribution = 0.0f32;
         for py in s.y0.max(y0)..=s.y1.min(y0 + h - 1) {
             let dy = (py - s.y0) as f32 + 0.5 - s.v;
             let row_d2 = dy * dy * s.inv_syy;
@@ -186,6 +191,7 @@ pub(super) fn blend_tile(
                     continue;
                 }
                 let weight = alpha * t_now;
+                contribution += weight;
                 for (acc, c) in out.rgb[p].iter_mut().zip(s.color) {
                     *acc += weight * c;
                 }
@@ -200,6 +206,11 @@ pub(super) fn blend_tile(
                 }
                 out.transmittance[p] = t_next;
             }
+        }
+        if let Some(sums) = contributions.as_deref_mut()
+            && contribution > 0.0
+        {
+            sums.push((s.index, contribution));
         }
         if live == 0 {
             break;

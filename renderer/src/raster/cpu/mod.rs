@@ -96,6 +96,43 @@ impl CpuRasterizer {
             .as_ref()
             .map_or_else(rayon::current_num_threads, |p| p.current_num_threads())
     }
+
+    /// Renders, and measures what each Gaussian contributes to the image: its blending weights
+    /// summed over the pixels, Σ transmittance · alpha, in pixels (a Gaussian that covers one
+    /// pixel fully and in front of everything contributes 1). Removing one Gaussian changes no
+    /// pixel of a render with colours and background in [0, 1] by more than its weight there, so
+    /// its contribution bounds the change it makes to the image's sum of absolute differences,
+    /// per channel (up to the transmittance floor's early stop). See [`crate::pruning`].
+    pub fn render_with_contributions(
+        &self,
+        gaussians: &GaussianSet,
+        camera: &Camera,
+        options: &RenderOptions,
+    ) -> Result<(Image, Vec<f32>), RendererError> {
+        let (image, sums) = self.run(gaussians, camera, options, true)?;
+        Ok((image, sums.unwrap_or_default()))
+    }
+
+    fn run(
+        &self,
+        gaussians: &GaussianSet,
+        camera: &Camera,
+        options: &RenderOptions,
+        contributions: bool,
+    ) -> Result<(Image, Option<Vec<f32>>), RendererError> {
+        options.validate()?;
+        if u32::try_from(gaussians.len()).is_err() {
+            return Err(RendererError::InvalidRenderOptions(format!(
+                "{} Gaussians are more than one render can index",
+                gaussians.len()
+            )));
+        }
+        let job = || render_frame(gaussians, camera, options, self.pair_budget, contributions);
+        Ok(match &self.pool {
+            Some(pool) => pool.install(job),
+            None => job(),
+        })
+    }
 }
 
 impl Rasterizer for CpuRasterizer {
@@ -105,28 +142,20 @@ impl Rasterizer for CpuRasterizer {
         camera: &Camera,
         options: &RenderOptions,
     ) -> Result<Image, RendererError> {
-        options.validate()?;
-        if u32::try_from(gaussians.len()).is_err() {
-            return Err(RendererError::InvalidRenderOptions(format!(
-                "{} Gaussians are more than one render can index",
-                gaussians.len()
-            )));
-        }
-        let job = || render_frame(gaussians, camera, options, self.pair_budget);
-        Ok(match &self.pool {
-            Some(pool) => pool.install(job),
-            None => job(),
-        })
+        Ok(self.run(gaussians, camera, options, false)?.0)
     }
 }
 
 /// The whole render on the current rayon pool.
+/// One render, and with `contributions` every Gaussian's blending weight summed over the image's
+/// pixels (Σ transmittance · alpha; 0 for a Gaussian that reaches no pixel).
 fn render_frame(
     set: &GaussianSet,
     camera: &Camera,
     options: &RenderOptions,
     pair_budget: usize,
-) -> Image {
+    contributions: bool,
+) -> (Image, Option<Vec<f32>>) {
     let view = View::new(camera, options);
     let mut splats: Vec<Splat> = (0..set.len())
         .into_par_iter()
@@ -153,28 +182,40 @@ fn render_frame(
     };
     let mut rows = TileRow::split(&grid, &mut image);
     let cut = d2_cut(options.footprint);
+    let mut sums = contributions.then(|| vec![0.0f32; set.len()]);
     for band in grid.bands(&chunks.totals, pair_budget) {
         let pairs = chunks.fill_band(&grid, &splats, band.clone());
         let (first, last) = (band.start / grid.tiles_x, (band.end - 1) / grid.tiles_x);
-        rows[first..=last].par_iter_mut().for_each(|row| {
-            let mut acc = TileAcc::new(channels);
-            let tiles = (row.index * grid.tiles_x).max(band.start)
-                ..((row.index + 1) * grid.tiles_x).min(band.end);
-            for t in tiles {
-                let k = t - band.start;
-                acc.clear();
-                blend_tile(
-                    &mut acc,
-                    &grid,
-                    t,
-                    &pairs.splats[pairs.offsets[k]..pairs.offsets[k + 1]],
-                    &splats,
-                    features.map(|f| (f.width(), f.values())),
-                    cut,
-                );
-                row.write(&grid, t, &acc, options.background);
+        let partial: Vec<Vec<(u32, f32)>> = rows[first..=last]
+            .par_iter_mut()
+            .map(|row| {
+                let mut acc = TileAcc::new(channels);
+                let mut local = Vec::new();
+                let tiles = (row.index * grid.tiles_x).max(band.start)
+                    ..((row.index + 1) * grid.tiles_x).min(band.end);
+                for t in tiles {
+                    let k = t - band.start;
+                    acc.clear();
+                    blend_tile(
+                        &mut acc,
+                        &grid,
+                        t,
+                        &pairs.splats[pairs.offsets[k]..pairs.offsets[k + 1]],
+                        &splats,
+                        features.map(|f| (f.width(), f.values())),
+                        cut,
+                        contributions.then_some(&mut local),
+                    );
+                    row.write(&grid, t, &acc, options.background);
+                }
+                local
+            })
+            .collect();
+        if let Some(sums) = &mut sums {
+            for (index, value) in partial.into_iter().flatten() {
+                sums[index as usize] += value;
             }
-        });
+        }
     }
-    image
+    (image, sums)
 }
