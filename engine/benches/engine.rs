@@ -10,6 +10,10 @@
 //! Results go in docs/benchmarks.md with the machine line this prints.
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
+// The integration tests' helpers: where the packages and c4g-tiny's test clips are.
+#[path = "../tests/common/mod.rs"]
+mod common;
+
 use std::path::PathBuf;
 use std::time::Duration;
 
@@ -119,33 +123,16 @@ fn official(c: &mut Criterion) {
     bench_package(c, "official", dir.into(), &[4], &[(4, 1)]);
 }
 
-/// c4g-tiny's first test clip, its context frames encoded.
-fn tiny_clip(engine: &Engine, dir: &std::path::Path) -> Encoding {
-    let clip = dir.join("test-clips/seed-2000000");
-    let meta: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(clip.join("clip.json")).unwrap()).unwrap();
-    let times: Vec<f64> = serde_json::from_value(meta["times"].clone()).unwrap();
-    let names: Vec<String> = serde_json::from_value(meta["frames"].clone()).unwrap();
-    let context: Vec<usize> = serde_json::from_value(meta["context"].clone()).unwrap();
-    let frames: Vec<ContextFrame> = context
-        .iter()
-        .map(|&i| {
-            let image = image::open(clip.join(&names[i])).unwrap().to_rgb8();
-            ContextFrame::new(times[i], engine.preprocess(&image).unwrap())
-        })
-        .collect();
-    engine.encode(&frames).unwrap()
-}
-
 fn keyframes(c: &mut Criterion) {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../models/c4g-tiny");
-    let engine = Engine::load(&dir, EngineOptions::default()).unwrap();
+    let engine = Engine::load(common::tiny_dir(), EngineOptions::default()).unwrap();
     eprintln!(
         "machine: {}; package: {}",
         machine(),
         engine.manifest().name
     );
-    let encoding = tiny_clip(&engine, &dir);
+    let encoding = engine
+        .encode(&common::tiny_clip(&engine, "seed-2000000").context)
+        .unwrap();
     let times = targets(&encoding, 64);
     let exact = engine.decode(&encoding, &times).unwrap();
     let modes = [

@@ -5,38 +5,21 @@
 
 mod common;
 
-use std::path::PathBuf;
 use std::sync::OnceLock;
 
 use c4g_engine::keyframes::{Deviation, deviation};
-use c4g_engine::{ContextFrame, Encoding, Engine, EngineOptions, Keyframes};
+use c4g_engine::{Encoding, Engine, EngineOptions, Keyframes};
 use c4g_renderer::GaussianSet;
-
-fn tiny_dir() -> PathBuf {
-    common::workspace().join("models/c4g-tiny")
-}
 
 fn tiny() -> &'static Engine {
     static ENGINE: OnceLock<Engine> = OnceLock::new();
-    ENGINE.get_or_init(|| Engine::load(tiny_dir(), EngineOptions::default()).unwrap())
+    ENGINE.get_or_init(|| Engine::load(common::tiny_dir(), EngineOptions::default()).unwrap())
 }
 
 /// The first committed test clip of c4g-tiny, its context frames encoded.
 fn tiny_clip() -> Encoding {
-    let dir = tiny_dir().join("test-clips/seed-2000000");
-    let meta: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("clip.json")).unwrap()).unwrap();
-    let times: Vec<f64> = serde_json::from_value(meta["times"].clone()).unwrap();
-    let names: Vec<String> = serde_json::from_value(meta["frames"].clone()).unwrap();
-    let context: Vec<usize> = serde_json::from_value(meta["context"].clone()).unwrap();
-    let frames: Vec<ContextFrame> = context
-        .iter()
-        .map(|&i| {
-            let image = image::open(dir.join(&names[i])).unwrap().to_rgb8();
-            ContextFrame::new(times[i], tiny().preprocess(&image).unwrap())
-        })
-        .collect();
-    tiny().encode(&frames).unwrap()
+    let clip = common::tiny_clip(tiny(), "seed-2000000");
+    tiny().encode(&clip.context).unwrap()
 }
 
 /// `n` times spread evenly over the encoding's span, both ends included.

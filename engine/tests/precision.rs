@@ -12,12 +12,8 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use c4g_engine::{ContextFrame, Engine, EngineError, EngineOptions};
+use c4g_engine::{Engine, EngineError, EngineOptions};
 use c4g_renderer::GaussianSet;
-
-fn tiny_dir() -> PathBuf {
-    common::workspace().join("models/c4g-tiny")
-}
 
 /// The Python environment that has the converter, or `None` (allowed only outside CI).
 fn python() -> Option<PathBuf> {
@@ -38,7 +34,7 @@ fn python() -> Option<PathBuf> {
 fn convert(python: &Path, precision: &str, out: &Path) {
     let status = Command::new(python)
         .args(["-m", "c4g.precision", "--package"])
-        .arg(tiny_dir())
+        .arg(common::tiny_dir())
         .args(["--precision", precision, "--out"])
         .arg(out)
         .env("PYTHONPATH", common::workspace().join("models/python"))
@@ -47,22 +43,9 @@ fn convert(python: &Path, precision: &str, out: &Path) {
     assert!(status.success(), "the converter failed for {precision}");
 }
 
-/// Context frames 0, 2, 4, 6 of the first test clip at 0, 0.2, 0.4, 0.6 s.
-fn context(engine: &Engine) -> Vec<ContextFrame> {
-    let clip = tiny_dir().join("test-clips/seed-2000000");
-    [0, 2, 4, 6]
-        .iter()
-        .map(|&i| {
-            let image = image::open(clip.join(format!("frame-0{i}.png")))
-                .unwrap()
-                .to_rgb8();
-            ContextFrame::new(f64::from(i) * 0.1, engine.preprocess(&image).unwrap())
-        })
-        .collect()
-}
-
 fn decode(engine: &Engine) -> Vec<GaussianSet> {
-    let encoding = engine.encode(&context(engine)).unwrap();
+    let clip = common::tiny_clip(engine, "seed-2000000");
+    let encoding = engine.encode(&clip.context).unwrap();
     engine
         .decode(&encoding, &[0.0, 0.1, 0.3, 0.55, 0.6])
         .unwrap()
@@ -79,7 +62,7 @@ fn max_difference(a: &[[f32; 3]], b: &[[f32; 3]]) -> f32 {
 #[test]
 fn f16_and_int8_packages_decode_valid_sets_close_to_f32() {
     let Some(python) = python() else { return };
-    let exact = decode(&Engine::load(tiny_dir(), EngineOptions::default()).unwrap());
+    let exact = decode(&Engine::load(common::tiny_dir(), EngineOptions::default()).unwrap());
     for (precision, bound) in [("f16", 5e-3), ("int8", 0.1)] {
         let dir = tempfile::tempdir().unwrap();
         convert(&python, precision, dir.path());

@@ -10,28 +10,21 @@
 
 mod common;
 
-use std::path::PathBuf;
-
-use c4g_engine::{ContextFrame, Engine, EngineOptions};
+use c4g_engine::{Engine, EngineOptions};
 use c4g_renderer::pruning::{PruneOptions, SceneAnalysis};
 use c4g_renderer::{
     Camera, CpuRasterizer, NormalizedIntrinsics, Rasterizer, RenderOptions, Trajectory, metrics,
 };
 use glam::Affine3A;
-use serde_json::Value;
 
 const MIN_PSNR_DB: f64 = 45.0;
-
-fn tiny_dir() -> PathBuf {
-    common::workspace().join("models/c4g-tiny")
-}
 
 #[test]
 fn pruned_tiny_scenes_render_like_the_full_ones_from_the_measured_views() {
     if common::skip_reason().is_some() {
         return;
     }
-    let engine = Engine::load(tiny_dir(), EngineOptions::default()).unwrap();
+    let engine = Engine::load(common::tiny_dir(), EngineOptions::default()).unwrap();
     let reference = Camera::from_normalized(
         NormalizedIntrinsics::C4G_DEFAULT,
         64,
@@ -52,27 +45,10 @@ fn pruned_tiny_scenes_render_like_the_full_ones_from_the_measured_views() {
     let rasterizer = CpuRasterizer::new();
     let options = RenderOptions::default();
     let prune = PruneOptions::default();
-    let mut clips: Vec<PathBuf> = std::fs::read_dir(tiny_dir().join("test-clips"))
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .collect();
-    clips.sort();
-    for clip in clips {
-        let meta: Value =
-            serde_json::from_str(&std::fs::read_to_string(clip.join("clip.json")).unwrap())
-                .unwrap();
-        let times: Vec<f64> = serde_json::from_value(meta["times"].clone()).unwrap();
-        let context: Vec<usize> = serde_json::from_value(meta["context"].clone()).unwrap();
-        let frames: Vec<String> = serde_json::from_value(meta["frames"].clone()).unwrap();
-        let context_frames: Vec<ContextFrame> = context
-            .iter()
-            .map(|&i| {
-                let image = image::open(clip.join(&frames[i])).unwrap().to_rgb8();
-                ContextFrame::new(times[i], engine.preprocess(&image).unwrap())
-            })
-            .collect();
-        let encoding = engine.encode(&context_frames).unwrap();
-        let sets = engine.decode(&encoding, &times).unwrap();
+    for name in common::tiny_clip_names() {
+        let clip = common::tiny_clip(&engine, &name);
+        let encoding = engine.encode(&clip.context).unwrap();
+        let sets = engine.decode(&encoding, &clip.times).unwrap();
         let analysis = SceneAnalysis::measure(&sets, &cameras, &rasterizer, &options).unwrap();
         let keep = analysis.keep(&prune);
         let kept = keep.iter().filter(|k| **k).count();
@@ -89,10 +65,10 @@ fn pruned_tiny_scenes_render_like_the_full_ones_from_the_measured_views() {
         }
         println!(
             "{}: keeps {kept} of {} Gaussians, {moving} move more than 0.01; worst PSNR against the full set {worst:.1} dB",
-            clip.file_name().unwrap().to_string_lossy(),
+            name,
             keep.len()
         );
         assert!(kept >= 1 && kept <= keep.len());
-        assert!(worst >= MIN_PSNR_DB, "{}: {worst} dB", clip.display());
+        assert!(worst >= MIN_PSNR_DB, "{name}: {worst} dB");
     }
 }

@@ -29,7 +29,7 @@ pub enum ExecutionProvider {
 }
 
 /// How the sessions of a model are configured.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct SessionOptions {
     /// Threads ONNX Runtime may use inside one operator; 0 leaves ONNX Runtime's default
     /// (one per physical core).
@@ -41,6 +41,22 @@ pub struct SessionOptions {
     /// engine's decoder at 16 frames); off (the default), memory goes back to the allocator after
     /// each run.
     pub cpu_arena: bool,
+    /// Let ONNX Runtime's intra-op threads spin while they wait for work (its own default, on).
+    /// Spinning trades CPU for latency between operators; on a machine with few cores that also
+    /// runs other work (the rasterizer, the network) it can cost more than it saves: measure
+    /// (`python -m c4g.bench_decoder`, docs/benchmarks.md).
+    pub intra_op_spinning: bool,
+}
+
+impl Default for SessionOptions {
+    fn default() -> Self {
+        Self {
+            intra_op_threads: 0,
+            execution_provider: ExecutionProvider::Cpu,
+            cpu_arena: false,
+            intra_op_spinning: true,
+        }
+    }
 }
 
 /// Opens the ONNX graph `model` as it is on disk, as a session configured by `options`.
@@ -58,6 +74,11 @@ pub fn session_builder(model: &Path, options: &SessionOptions) -> Result<Session
     if options.intra_op_threads > 0 {
         builder = builder
             .with_intra_threads(options.intra_op_threads)
+            .map_err(RuntimeError::ort(loading(model)))?;
+    }
+    if !options.intra_op_spinning {
+        builder = builder
+            .with_intra_op_spinning(false)
             .map_err(RuntimeError::ort(loading(model)))?;
     }
     register_provider(builder, options)
@@ -116,5 +137,6 @@ mod tests {
         assert_eq!(o.execution_provider, ExecutionProvider::Cpu);
         assert_eq!(o.intra_op_threads, 0);
         assert!(!o.cpu_arena);
+        assert!(o.intra_op_spinning);
     }
 }

@@ -23,6 +23,13 @@ pub struct Config {
     /// ONNX Runtime intra-op threads (0: ONNX Runtime's default, one per core).
     #[arg(long, env = "C4G_INTRA_OP_THREADS", default_value_t = 0)]
     pub intra_op_threads: usize,
+    /// Keep ONNX Runtime's CPU memory arena: buffers are reused across decodes (faster at
+    /// large sizes: docs/benchmarks.md) but the largest run's memory stays held.
+    #[arg(long, env = "C4G_CPU_ARENA", default_value_t = false, action = clap::ArgAction::Set)]
+    pub cpu_arena: bool,
+    /// Let ONNX Runtime's threads spin while waiting for work (ONNX Runtime's default).
+    #[arg(long, env = "C4G_INTRA_OP_SPINNING", default_value_t = true, action = clap::ArgAction::Set)]
+    pub intra_op_spinning: bool,
     /// Where the model runs. `cuda` needs c4g-server built with `--features cuda` and the
     /// onnxruntime-gpu library; it never falls back to the CPU silently.
     #[arg(long, env = "C4G_DEVICE", value_enum, default_value_t = DeviceArg::Cpu)]
@@ -258,7 +265,8 @@ impl Config {
                         device_id: self.cuda_device,
                     },
                 },
-                ..c4g_engine::SessionOptions::default()
+                cpu_arena: self.cpu_arena,
+                intra_op_spinning: self.intra_op_spinning,
             },
             time_policy: match self.time_policy {
                 PolicyArg::Package => None,

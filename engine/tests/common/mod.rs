@@ -103,3 +103,44 @@ pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
         .map(|(x, y)| (x - y).abs())
         .fold(0.0, f32::max)
 }
+
+/// The default model's package (`models/c4g-tiny`).
+pub fn tiny_dir() -> PathBuf {
+    workspace().join("models/c4g-tiny")
+}
+
+/// One of c4g-tiny's committed test clips (`test-clips/<name>`, from its `clip.json`): the times
+/// of all its frames and its context frames, preprocessed by `engine`.
+pub struct TinyClip {
+    /// Every frame's time, seconds (targets included).
+    pub times: Vec<f64>,
+    /// The context frames.
+    pub context: Vec<ContextFrame>,
+}
+
+pub fn tiny_clip(engine: &Engine, name: &str) -> TinyClip {
+    let dir = tiny_dir().join("test-clips").join(name);
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("clip.json")).unwrap()).unwrap();
+    let times: Vec<f64> = serde_json::from_value(meta["times"].clone()).unwrap();
+    let names: Vec<String> = serde_json::from_value(meta["frames"].clone()).unwrap();
+    let indices: Vec<usize> = serde_json::from_value(meta["context"].clone()).unwrap();
+    let context = indices
+        .iter()
+        .map(|&i| {
+            let image = image::open(dir.join(&names[i])).unwrap().to_rgb8();
+            ContextFrame::new(times[i], engine.preprocess(&image).unwrap())
+        })
+        .collect();
+    TinyClip { times, context }
+}
+
+/// The names of c4g-tiny's test clips, sorted.
+pub fn tiny_clip_names() -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(tiny_dir().join("test-clips"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+}

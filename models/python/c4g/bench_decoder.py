@@ -34,10 +34,12 @@ from .attention import fused_export
 from .export import DecoderGraph, _config, _export_graph, build_model
 
 
-def session_options(profile_dir: Path | None = None) -> ort.SessionOptions:
-    """The engine's session settings (c4g-runtime's defaults): CPU arena off, default threads."""
+def session_options(profile_dir: Path | None = None, arena: bool = False, spinning: bool = True) -> ort.SessionOptions:
+    """The engine's session settings: c4g-runtime's defaults (CPU arena off, threads spinning,
+    default thread count), or the `C4G_CPU_ARENA` / `C4G_INTRA_OP_SPINNING` ones asked for."""
     options = ort.SessionOptions()
-    options.enable_cpu_mem_arena = False
+    options.enable_cpu_mem_arena = arena
+    options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
     if profile_dir is not None:
         options.enable_profiling = True
         options.profile_file_prefix = str(profile_dir / "decoder")
@@ -71,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, nargs="+", default=[4, 16])
     ap.add_argument("--batch", type=int, nargs="+", default=[1])
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--arena", action="store_true", help="ONNX Runtime's CPU arena on (C4G_CPU_ARENA=true)")
+    ap.add_argument("--no-spinning", action="store_true", help="intra-op threads do not spin (C4G_INTRA_OP_SPINNING=false)")
     ap.add_argument("--profile", type=Path, help="write an ONNX Runtime profile of one call per setting here")
     ap.add_argument("--json", type=Path, help="also write the results as JSON")
     args = ap.parse_args(argv)
@@ -89,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
                 DecoderGraph(model), (f, torch.zeros(2, 2), torch.zeros(2)), path,
                 {"features": {0: "T"}, "context_times": {0: "B", 1: "T"}, "target_times": {0: "B"}}, {"gaussians": {0: "B"}},
             )  # fmt: skip
-        sess = ort.InferenceSession(str(path), session_options(), providers=["CPUExecutionProvider"])
+        sess = ort.InferenceSession(str(path), session_options(None, args.arena, not args.no_spinning), providers=["CPUExecutionProvider"])
         for frames in args.frames:
             for batch in args.batch:
                 feeds = inputs(cfg, frames, batch)
@@ -119,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
                 )
                 if args.profile:
                     args.profile.mkdir(parents=True, exist_ok=True)
-                    prof = ort.InferenceSession(str(path), session_options(args.profile), providers=["CPUExecutionProvider"])
+                    prof = ort.InferenceSession(str(path), session_options(args.profile, args.arena, not args.no_spinning), providers=["CPUExecutionProvider"])
                     prof.run(None, feeds)
                     prof.run(None, feeds)
                     ops = per_op(Path(prof.end_profiling()))
