@@ -7,7 +7,8 @@ exports the decoder graph as the export tool does (fused attention, the last lay
 only), and times one decoder call per (T, B) both ways, alternating ONNX Runtime and PyTorch so
 that a noisy machine slows both alike: the median of `--repeats` calls each, and their ratio.
 ONNX Runtime runs with the engine's session settings (CPU provider, no arena, one thread per core),
-PyTorch with as many threads. `--profile` also writes ONNX Runtime's per-node profile of one call
+PyTorch with as many threads. `--settings` times ONNX Runtime's session settings against each
+other instead (arena, thread spinning). `--profile` also writes ONNX Runtime's per-node profile of one call
 and prints the time per operator type, which is where the exact speed-ups are found.
 
 The features are random, and the times are the reference normalisation of context frames 0..T-1
@@ -67,6 +68,34 @@ def per_op(profile: Path) -> dict[str, float]:
     return dict(sorted(totals.items(), key=lambda kv: -kv[1]))
 
 
+SETTINGS = {
+    "engine default (no arena, spinning)": (False, True),
+    "C4G_CPU_ARENA=true": (True, True),
+    "C4G_INTRA_OP_SPINNING=false": (False, False),
+    "both": (True, False),
+}
+
+
+def compare_settings(path: Path, cfg, args) -> None:
+    """One session per setting, timed call by call in turn (median of `--repeats` each)."""
+    sessions = {
+        name: ort.InferenceSession(str(path), session_options(None, arena, spinning), providers=["CPUExecutionProvider"])
+        for name, (arena, spinning) in SETTINGS.items()
+    }
+    for frames in args.frames:
+        for batch in args.batch:
+            feeds = inputs(cfg, frames, batch)
+            for s in sessions.values():
+                s.run(None, feeds)
+            times: dict[str, list[float]] = {name: [] for name in sessions}
+            for _ in range(args.repeats):
+                for name, s in sessions.items():
+                    t = time.perf_counter()
+                    s.run(None, feeds)
+                    times[name].append(time.perf_counter() - t)
+            print(f"T={frames} B={batch}: " + ", ".join(f"{k} {statistics.median(v):.2f} s" for k, v in times.items()), flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m c4g.bench_decoder", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", default="official")
@@ -75,6 +104,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--arena", action="store_true", help="ONNX Runtime's CPU arena on (C4G_CPU_ARENA=true)")
     ap.add_argument("--no-spinning", action="store_true", help="intra-op threads do not spin (C4G_INTRA_OP_SPINNING=false)")
+    ap.add_argument(
+        "--settings",
+        action="store_true",
+        help="instead of PyTorch, compare ONNX Runtime's session settings: the engine default, arena on, spinning off, both",
+    )
     ap.add_argument("--profile", type=Path, help="write an ONNX Runtime profile of one call per setting here")
     ap.add_argument("--json", type=Path, help="also write the results as JSON")
     args = ap.parse_args(argv)
@@ -93,6 +127,10 @@ def main(argv: list[str] | None = None) -> int:
                 DecoderGraph(model), (f, torch.zeros(2, 2), torch.zeros(2)), path,
                 {"features": {0: "T"}, "context_times": {0: "B", 1: "T"}, "target_times": {0: "B"}}, {"gaussians": {0: "B"}},
             )  # fmt: skip
+        if args.settings:
+            del model
+            compare_settings(path, cfg, args)
+            return 0
         sess = ort.InferenceSession(str(path), session_options(None, args.arena, not args.no_spinning), providers=["CPUExecutionProvider"])
         for frames in args.frames:
             for batch in args.batch:
