@@ -10,7 +10,7 @@ use reqwest::header::ACCEPT;
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 
-use crate::{Client, Error, Keyframes, wire};
+use crate::{Approximation, Client, Error, wire};
 
 /// The Gaussians of a clip at one time.
 #[derive(Debug, Clone, PartialEq)]
@@ -107,21 +107,27 @@ impl Client {
         times: &[f64],
         precision: Precision,
     ) -> Result<Vec<GaussianFrame>, Error> {
-        self.gaussians_keyframed(clip_id, times, precision, None)
+        self.gaussians_approximated(clip_id, times, precision, &Approximation::default())
             .await
     }
 
-    /// [`gaussians`](Self::gaussians), with the sets between `keyframes` interpolated by the
-    /// server (`None`: every time exact).
-    pub async fn gaussians_keyframed(
+    /// [`gaussians`](Self::gaussians), approximated as `approximation` asks (a quality preset,
+    /// keyframes, pruning; the default is exact).
+    pub async fn gaussians_approximated(
         &self,
         clip_id: &str,
         times: &[f64],
         precision: Precision,
-        keyframes: Option<&Keyframes>,
+        approximation: &Approximation,
     ) -> Result<Vec<GaussianFrame>, Error> {
         let bytes = self
-            .decode_request(clip_id, times, GaussianFormat::Binary, precision, keyframes)
+            .decode_request(
+                clip_id,
+                times,
+                GaussianFormat::Binary,
+                precision,
+                approximation,
+            )
             .await?;
         wire::parse_binary(&bytes)
     }
@@ -134,20 +140,19 @@ impl Client {
         times: &[f64],
         format: GaussianFormat,
     ) -> Result<Bytes, Error> {
-        self.gaussians_raw_keyframed(clip_id, times, format, None)
+        self.gaussians_raw_approximated(clip_id, times, format, &Approximation::default())
             .await
     }
 
-    /// [`gaussians_raw`](Self::gaussians_raw), with the sets between `keyframes` interpolated
-    /// by the server (`None`: every time exact).
-    pub async fn gaussians_raw_keyframed(
+    /// [`gaussians_raw`](Self::gaussians_raw), approximated as `approximation` asks.
+    pub async fn gaussians_raw_approximated(
         &self,
         clip_id: &str,
         times: &[f64],
         format: GaussianFormat,
-        keyframes: Option<&Keyframes>,
+        approximation: &Approximation,
     ) -> Result<Bytes, Error> {
-        self.decode_request(clip_id, times, format, Precision::F32, keyframes)
+        self.decode_request(clip_id, times, format, Precision::F32, approximation)
             .await
     }
 
@@ -157,13 +162,13 @@ impl Client {
         times: &[f64],
         format: GaussianFormat,
         precision: Precision,
-        keyframes: Option<&Keyframes>,
+        approximation: &Approximation,
     ) -> Result<Bytes, Error> {
         let url = self.url(&["v1", "clips", clip_id, "gaussians"]);
-        let mut body = json!({"times": times, "format": format, "precision": precision});
-        if let Some(keyframes) = keyframes {
-            body["keyframes"] = json!(keyframes);
-        }
+        let mut body = json!(approximation);
+        body["times"] = json!(times);
+        body["format"] = json!(format);
+        body["precision"] = json!(precision);
         let request = self
             .http()
             .post(url)

@@ -16,6 +16,7 @@
 //! | [`upload`] | [`Client::upload`]: videos, archives and image directories, streamed with progress |
 //! | [`gaussians`] | [`Client::gaussians`] (parsed) and [`Client::gaussians_raw`] (JSON, binary, PLY, .splat) |
 //! | [`keyframes`] | [`Keyframes`]: exact sets at keyframes, interpolated between them, for decodes, streams and trajectories |
+//! | [`quality`] | [`Approximation`]: a [`Quality`] preset, keyframes and [`Prune`], for decodes, streams and renders |
 //! | [`wire`] | parsers of the packed Gaussian payloads: the `C4GS` binary format and the proto's arrays |
 //! | [`render`] | [`RenderRequest`] and [`Client::render`]: images, depth, alpha and trajectory videos |
 //! | [`stream`] | [`Client::stream`]: Gaussian sets over a time range, over gRPC |
@@ -32,6 +33,7 @@ pub mod gaussians;
 pub mod jobs;
 pub mod keyframes;
 pub mod model;
+pub mod quality;
 pub mod render;
 pub mod sse;
 pub mod stream;
@@ -46,6 +48,7 @@ pub use gaussians::{GaussianFormat, GaussianFrame, Precision};
 pub use jobs::{Job, JobEvents, JobProgress, RefineRequest, Sampler, job_event_stream};
 pub use keyframes::Keyframes;
 pub use model::{InputSize, Model};
+pub use quality::{Approximation, Prune, Quality};
 pub use render::{
     CameraSpec, IntrinsicsSpec, RenderFormat, RenderRequest, Rendered, TrajectoryPreset,
 };

@@ -11,7 +11,7 @@ use bytes::Bytes;
 use reqwest::header::CONTENT_TYPE;
 use serde::{Deserialize, Serialize};
 
-use crate::{Client, Error, Keyframes};
+use crate::{Approximation, Client, Error};
 
 /// A render request, as `docs/api.md` describes its JSON.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -51,10 +51,9 @@ pub struct RenderRequest {
     /// Frame rate of a trajectory video (server default 12).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fps: Option<f64>,
-    /// A trajectory's sets from keyframes, interpolated between them (default: every frame's
-    /// set exact).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub keyframes: Option<Keyframes>,
+    /// A quality preset, keyframes (a trajectory's only), pruning (default: exact).
+    #[serde(flatten)]
+    pub approximation: Approximation,
 }
 
 /// A camera: a pose and intrinsics, each defaulting to the first context camera's.

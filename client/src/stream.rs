@@ -7,7 +7,7 @@ use c4g_proto::v1 as proto;
 use futures_util::StreamExt;
 use futures_util::stream::BoxStream;
 
-use crate::{Client, Error, GaussianFrame, Keyframes, Precision, wire};
+use crate::{Approximation, Client, Error, GaussianFrame, Keyframes, Precision, Prune, wire};
 
 /// The spacing of streamed sets.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -30,9 +30,9 @@ pub struct StreamOptions {
     pub spacing: Option<Spacing>,
     /// Precision on the wire (the sets arrive as `f32` either way).
     pub precision: Precision,
-    /// Decode keyframes over the range first and interpolate the sets between them (default:
-    /// every set exact).
-    pub keyframes: Option<Keyframes>,
+    /// A quality preset, keyframes (decoded over the range first, the sets between them
+    /// interpolated), pruning (default: exact).
+    pub approximation: Approximation,
 }
 
 /// Gaussian sets in time order, as they arrive; the first error ends the stream.
@@ -56,7 +56,13 @@ impl Client {
                 Spacing::Fps(fps) => proto::stream_gaussians_request::Spacing::Fps(fps),
             }),
             precision: wire::proto_precision(options.precision).into(),
-            keyframes: options.keyframes.as_ref().map(Keyframes::to_proto),
+            keyframes: options
+                .approximation
+                .keyframes
+                .as_ref()
+                .map(Keyframes::to_proto),
+            quality: options.approximation.proto_quality(),
+            prune: options.approximation.prune.as_ref().map(Prune::to_proto),
         };
         let mut grpc = self.grpc().await?;
         let frames = grpc

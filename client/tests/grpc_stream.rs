@@ -6,7 +6,7 @@
 
 use std::net::SocketAddr;
 
-use c4g_client::{Client, Error, Precision, Spacing, StreamOptions};
+use c4g_client::{Approximation, Client, Error, Precision, Spacing, StreamOptions};
 use c4g_proto::v1 as proto;
 use c4g_proto::v1::c4g_server::{C4g, C4gServer};
 use futures_util::StreamExt;
@@ -156,7 +156,7 @@ async fn streamed_sets_arrive_in_order_and_unpacked() {
             end: Some(1.25),
             spacing: Some(Spacing::Step(0.25)),
             precision,
-            keyframes: None,
+            approximation: Approximation::default(),
         };
         let frames: Vec<_> = client
             .stream("clip", &options)

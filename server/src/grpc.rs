@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use axum::http::HeaderMap;
 use bytes::BytesMut;
-use c4g_engine::{Encoding, KeyframeTrack, Keyframes};
+use c4g_engine::Encoding;
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_server::{C4g, C4gServer};
 use c4g_renderer::Trajectory;
@@ -19,7 +19,8 @@ use crate::camera::{CameraSpec, IntrinsicsSpec};
 use crate::image_formats::{ImageFormat, encode_image};
 use crate::intake::{IntakeOptions, Media, MediaKind};
 use crate::keyframes::KeyframesSpec;
-use crate::service::{PathRequest, Service, ViewRequest};
+use crate::quality::{Approximation, Preset, PruneSpec, QualitySpec};
+use crate::service::{PathRequest, Service, SetPlan, ViewRequest};
 use crate::store::ClipRecord;
 use crate::wire::{self, Precision};
 use crate::{AppState, ServiceError};
@@ -164,28 +165,54 @@ fn keyframes_spec(
     Ok(Some(spec))
 }
 
+/// What a request's `quality`, `keyframes` and `prune` ask for; the service checks it.
+fn quality_spec(
+    quality: i32,
+    keyframes: Option<&pb::Keyframes>,
+    prune: Option<&pb::Prune>,
+) -> Result<QualitySpec, ServiceError> {
+    let preset = match pb::Quality::try_from(quality) {
+        Ok(pb::Quality::Unspecified) => None,
+        Ok(pb::Quality::Exact) => Some(Preset::Exact),
+        Ok(pb::Quality::Balanced) => Some(Preset::Balanced),
+        Ok(pb::Quality::Fast) => Some(Preset::Fast),
+        Err(_) => {
+            return Err(ServiceError::invalid(format!(
+                "unknown quality {quality}: QUALITY_EXACT, QUALITY_BALANCED or QUALITY_FAST"
+            )));
+        }
+    };
+    Ok(QualitySpec {
+        preset,
+        keyframes: keyframes_spec(keyframes)?,
+        prune: prune.map(|p| PruneSpec {
+            contribution_px: p.contribution_px,
+            opacity: p.opacity,
+        }),
+    })
+}
+
 fn nonzero(v: u32) -> Option<u32> {
     (v != 0).then_some(v)
 }
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
 
-/// The keyframes of a stream's times, decoded on a work slot; `None` when `keyframes` decodes
-/// every time exactly (the stream then decodes chunk by chunk as it goes).
-async fn keyframe_track(
+/// Where a stream's sets come from, decided on a work slot before the first is sent: keyframes
+/// decoded over all of `times` (or none: the stream decodes chunk by chunk as it goes), and the
+/// Gaussians pruning keeps.
+async fn plan_sets(
     service: &Arc<Service>,
+    id: &str,
     encoding: &Arc<Encoding>,
     times: &[f64],
-    keyframes: Keyframes,
-) -> Result<Option<Arc<KeyframeTrack>>, ServiceError> {
-    if !keyframes.interpolates(times) {
-        return Ok(None);
-    }
-    let (encoding, times) = (encoding.clone(), times.to_vec());
-    let track = service
-        .work(move |service| service.keyframe_track_now(&encoding, &times, &keyframes))
+    approximation: Approximation,
+) -> Result<Arc<SetPlan>, ServiceError> {
+    let (id, encoding, times) = (id.to_owned(), encoding.clone(), times.to_vec());
+    let plan = service
+        .work(move |service| service.plan_sets_now(&id, &encoding, &times, &approximation))
         .await?;
-    Ok(Some(Arc::new(track)))
+    Ok(Arc::new(plan))
 }
 
 #[tonic::async_trait]
@@ -270,9 +297,7 @@ impl C4g for Grpc {
         &self,
         request: Request<pb::ClipRef>,
     ) -> Result<Response<pb::DeleteClipResponse>, Status> {
-        self.service()?
-            .store
-            .delete(&request.into_inner().clip_id)?;
+        self.service()?.delete(&request.into_inner().clip_id)?;
         Ok(Response::new(pb::DeleteClipResponse {}))
     }
 
@@ -282,10 +307,14 @@ impl C4g for Grpc {
     ) -> Result<Response<pb::DecodeResponse>, Status> {
         let request = request.into_inner();
         let precision: Precision = wire::precision_from_proto(request.precision());
-        let keyframes = keyframes_spec(request.keyframes.as_ref())?;
+        let quality = quality_spec(
+            request.quality,
+            request.keyframes.as_ref(),
+            request.prune.as_ref(),
+        )?;
         let frames = self
             .service()?
-            .decode(&request.clip_id, request.times, keyframes)
+            .decode(&request.clip_id, request.times, quality)
             .await?;
         Ok(Response::new(pb::DecodeResponse {
             frames: frames
@@ -336,16 +365,21 @@ impl C4g for Grpc {
         let times: Vec<f64> = (0..count)
             .map(|i| (start + step * i as f64).min(end))
             .collect();
-        let keyframes =
-            service.keyframes(keyframes_spec(request.keyframes.as_ref())?.as_ref(), &times)?;
+        let quality = quality_spec(
+            request.quality,
+            request.keyframes.as_ref(),
+            request.prune.as_ref(),
+        )?;
+        let approximation = service.approximation(&quality, &times)?;
         let encoding = service.store.encoding(&record.id).await?;
         let precision: Precision = wire::precision_from_proto(request.precision());
         let (tx, rx) = mpsc::channel(STREAM_AHEAD);
         tokio::spawn(async move {
             // With keyframes, those over the whole range are decoded first; each chunk is then
             // interpolated from them.
-            let track = match keyframe_track(&service, &encoding, &times, keyframes).await {
-                Ok(track) => track,
+            let plan = match plan_sets(&service, &record.id, &encoding, &times, approximation).await
+            {
+                Ok(plan) => plan,
                 Err(e) => {
                     let _ = tx.send(Err(e.into())).await;
                     return;
@@ -359,12 +393,9 @@ impl C4g for Grpc {
             for chunk in times.chunks(batch) {
                 let chunk = chunk.to_vec();
                 let encoding = encoding.clone();
-                let track = track.clone();
+                let plan = plan.clone();
                 let frames = service
-                    .work(move |service| match &track {
-                        Some(track) => service.interpolate_now(track, &chunk),
-                        None => service.decode_now(&encoding, &chunk),
-                    })
+                    .work(move |service| service.sets_now(&plan, &encoding, &chunk))
                     .await;
                 match frames {
                     Ok(frames) => {
@@ -401,7 +432,11 @@ impl C4g for Grpc {
             height: nonzero(request.height),
             background: background(&request.background)?,
         };
-        let image = self.service()?.render_view(&request.clip_id, view).await?;
+        let quality = quality_spec(request.quality, None, request.prune.as_ref())?;
+        let image = self
+            .service()?
+            .render_view(&request.clip_id, view, quality)
+            .await?;
         Ok(Response::new(pb::RenderedImage {
             time: request.time,
             width: image.width,
@@ -442,51 +477,46 @@ impl C4g for Grpc {
             background: background(&request.background)?,
         };
         let record = service.store.get(&request.clip_id)?;
-        let plan = service.plan_path(&record, &path)?;
-        let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
-        let keyframes =
-            service.keyframes(keyframes_spec(request.keyframes.as_ref())?.as_ref(), &times)?;
+        let frames = service.plan_path(&record, &path)?;
+        let times: Vec<f64> = frames.iter().map(|(t, _)| *t).collect();
+        let quality = quality_spec(
+            request.quality,
+            request.keyframes.as_ref(),
+            request.prune.as_ref(),
+        )?;
+        let approximation = service.approximation(&quality, &times)?;
         let encoding = service.store.encoding(&record.id).await?;
         let (tx, rx) = mpsc::channel(STREAM_AHEAD);
         let bg = path.background;
         tokio::spawn(async move {
-            let track = match keyframe_track(&service, &encoding, &times, keyframes).await {
-                Ok(track) => track,
+            let plan = match plan_sets(&service, &record.id, &encoding, &times, approximation).await
+            {
+                Ok(plan) => plan,
                 Err(e) => {
                     let _ = tx.send(Err(e.into())).await;
                     return;
                 }
             };
-            for (t, camera) in plan {
+            for (t, camera) in frames {
                 let encoding = encoding.clone();
-                let track = track.clone();
-                let result = service
-                    .work(move |service| {
-                        let image = match &track {
-                            Some(track) => {
-                                let set = service.interpolate_now(track, &[t])?.pop();
-                                let (_, set) = set.ok_or_else(|| {
-                                    ServiceError::Internal("the interpolation gave no set".into())
-                                })?;
-                                service.render_now(&set, &camera, bg)?
-                            }
-                            None => service
-                                .render_path_now(&encoding, &[(t, camera)], bg)?
-                                .into_iter()
-                                .next()
-                                .ok_or_else(|| {
-                                    ServiceError::Internal("the renderer returned no image".into())
-                                })?,
-                        };
-                        Ok(pb::RenderedImage {
-                            time: t,
-                            width: image.width,
-                            height: image.height,
-                            format: request.format,
-                            data: encode_image(&image, format)?,
+                let plan = plan.clone();
+                let result =
+                    service
+                        .work(move |service| {
+                            let (_, set) =
+                                service.sets_now(&plan, &encoding, &[t])?.pop().ok_or_else(
+                                    || ServiceError::Internal("the decoder gave no set".into()),
+                                )?;
+                            let image = service.render_now(&set, &camera, bg)?;
+                            Ok(pb::RenderedImage {
+                                time: t,
+                                width: image.width,
+                                height: image.height,
+                                format: request.format,
+                                data: encode_image(&image, format)?,
+                            })
                         })
-                    })
-                    .await;
+                        .await;
                 let end = result.is_err();
                 if tx.send(result.map_err(Status::from)).await.is_err() || end {
                     return;

@@ -11,6 +11,8 @@
 //! | `refine` | refinement requests, and the video a worker gets |
 //! | `camera` | cameras as clients state them |
 //! | `keyframes` | keyframed decoding as clients ask for it, checked against the limits |
+//! | `quality` | the speed/accuracy presets (exact, balanced, fast) and pruning as clients ask for it |
+//! | `pruning` | which Gaussians a pruned request keeps: each clip's scene analysis, cached |
 //! | `renderer` | the rasterizer choice |
 //! | `image_formats` | what renders answer with: PNG, raw depth and alpha, MP4 |
 //! | `service_error` | [`ServiceError`]: what went wrong, in domain words, and its kinds |
@@ -38,6 +40,8 @@ pub mod intake;
 pub mod jobs;
 mod keyframes;
 pub mod metrics;
+mod pruning;
+mod quality;
 mod refine;
 mod renderer;
 pub mod service;

@@ -14,6 +14,7 @@ use crate::ServiceError;
 use crate::camera::CameraSpec;
 use crate::image_formats::{ImageFormat, encode_image, le_bytes};
 use crate::jobs::JobRecord;
+use crate::quality::Approximation;
 use crate::service::{PathRequest, Service};
 
 /// Samplers a worker runs.
@@ -249,10 +250,11 @@ pub async fn build_job(
     }
     let encoding = service.store.encoding(&clip.id).await?;
     let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
+    let id = clip.id.clone();
     let rendered = service
         .work(move |service| {
             service
-                .render_path_now(&encoding, &plan, [0.0; 3])?
+                .render_path_now(&id, &encoding, &plan, [0.0; 3], &Approximation::EXACT)?
                 .iter()
                 .map(|image| encode_image(image, ImageFormat::Png))
                 .collect::<Result<Vec<_>, _>>()

@@ -57,6 +57,11 @@ impl Renderer {
         &self.name
     }
 
+    /// Which pixels each Gaussian is evaluated at.
+    pub fn footprint(&self) -> Footprint {
+        self.footprint
+    }
+
     /// Renders one view.
     pub fn render(
         &self,

@@ -21,7 +21,8 @@ use crate::camera::CameraSpec;
 use crate::config::{Config, Limits};
 use crate::intake::{self, IntakeOptions, IntakeTools, Media};
 use crate::jobs::JobStore;
-use crate::keyframes::{self, KeyframesSpec};
+use crate::pruning::Analyses;
+use crate::quality::{self, Approximation, QualitySpec};
 use crate::renderer::Renderer;
 use crate::store::{ClipRecord, ClipStore, NewClip, now};
 use crate::work::WorkSlots;
@@ -46,6 +47,7 @@ pub struct Service {
     model_key: String,
     encode_slots: Arc<Semaphore>,
     work: WorkSlots,
+    analyses: Analyses,
 }
 
 /// A render of one camera at one time.
@@ -126,6 +128,7 @@ impl Service {
             model_key,
             encode_slots: Arc::new(Semaphore::new(config.max_concurrent_encodes.max(1))),
             work,
+            analyses: Analyses::default(),
         })
     }
 
@@ -241,28 +244,34 @@ impl Service {
         Ok(())
     }
 
-    /// The keyframes a request over `times` asks for, checked (none: exact decodes).
-    pub fn keyframes(
+    /// The approximation a request over `times` asks for, checked (by default: exact).
+    pub fn approximation(
         &self,
-        spec: Option<&KeyframesSpec>,
+        spec: &QualitySpec,
         times: &[f64],
-    ) -> Result<Keyframes, ServiceError> {
-        keyframes::resolve(spec, times, self.limits.max_times)
+    ) -> Result<Approximation, ServiceError> {
+        quality::resolve(spec, times, self.limits.max_times)
     }
 
-    /// The Gaussians of clip `id` at each time: decoded exactly, or through `keyframes`.
+    /// The Gaussians of clip `id` at each time: decoded exactly, or approximated as `quality`
+    /// asks (keyframes, pruning).
     pub async fn decode(
         self: &Arc<Self>,
         id: &str,
         times: Vec<f64>,
-        keyframes: Option<KeyframesSpec>,
+        quality: QualitySpec,
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
         let record = self.store.get(id)?;
         self.check_times(&record, &times)?;
-        let keyframes = self.keyframes(keyframes.as_ref(), &times)?;
+        let approximation = self.approximation(&quality, &times)?;
         let encoding = self.store.encoding(id).await?;
-        self.work(move |service| service.decode_keyframed_now(&encoding, &times, &keyframes))
-            .await
+        let id = id.to_owned();
+        self.work(move |service| {
+            let sets = service.decode_keyframed_now(&encoding, &times, &approximation.keyframes)?;
+            let keep = service.keep_now(&id, &encoding, approximation.prune.as_ref())?;
+            prune(keep.as_deref(), sets)
+        })
+        .await
     }
 
     /// Decodes on the calling (blocking) thread.
@@ -286,6 +295,60 @@ impl Service {
         metrics::histogram!("c4g_decode_duration_seconds").record(started.elapsed().as_secs_f64());
         count_sets(stats.exact_decodes, stats.interpolated);
         Ok(times.iter().copied().zip(sets).collect())
+    }
+
+    /// Which Gaussians of clip `id` a request pruned by `prune` keeps (`None`: all of them),
+    /// measuring the clip on the calling thread the first time.
+    pub fn keep_now(
+        &self,
+        id: &str,
+        encoding: &Encoding,
+        prune: Option<&c4g_renderer::pruning::PruneOptions>,
+    ) -> Result<Option<Vec<bool>>, ServiceError> {
+        prune
+            .map(|options| {
+                self.analyses.keep(
+                    id,
+                    &self.engine,
+                    encoding,
+                    self.renderer.footprint(),
+                    options,
+                )
+            })
+            .transpose()
+    }
+
+    /// Decides, on the calling thread, where the sets of a multi-time request over `times`
+    /// come from (keyframes decoded now, or the decoder set by set) and which Gaussians they
+    /// keep, so that [`sets_now`](Self::sets_now) can serve them piece by piece.
+    pub fn plan_sets_now(
+        &self,
+        id: &str,
+        encoding: &Encoding,
+        times: &[f64],
+        approximation: &Approximation,
+    ) -> Result<SetPlan, ServiceError> {
+        let track = if approximation.keyframes.interpolates(times) {
+            Some(self.keyframe_track_now(encoding, times, &approximation.keyframes)?)
+        } else {
+            None
+        };
+        let keep = self.keep_now(id, encoding, approximation.prune.as_ref())?;
+        Ok(SetPlan { track, keep })
+    }
+
+    /// The sets at `times` as `plan` says (on the calling thread).
+    pub fn sets_now(
+        &self,
+        plan: &SetPlan,
+        encoding: &Encoding,
+        times: &[f64],
+    ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
+        let sets = match &plan.track {
+            Some(track) => self.interpolate_now(track, times)?,
+            None => self.decode_now(encoding, times)?,
+        };
+        prune(plan.keep.as_deref(), sets)
     }
 
     /// Decodes the keyframes `keyframes` chooses for `times` (on the calling thread), for
@@ -347,16 +410,20 @@ impl Service {
         self: &Arc<Self>,
         id: &str,
         view: ViewRequest,
+        quality: QualitySpec,
     ) -> Result<Image, ServiceError> {
         let record = self.store.get(id)?;
         self.check_times(&record, &[view.t])?;
         let (w, h) = self.image_size(view.width, view.height)?;
         let camera = view.camera.camera(w, h)?;
         check_background(view.background)?;
+        let approximation = self.approximation(&quality, &[view.t])?;
         let encoding = self.store.encoding(id).await?;
+        let id = id.to_owned();
         self.work(move |service| {
+            let plan = service.plan_sets_now(&id, &encoding, &[view.t], &approximation)?;
             let (_, set) = service
-                .decode_now(&encoding, &[view.t])?
+                .sets_now(&plan, &encoding, &[view.t])?
                 .pop()
                 .ok_or_else(|| ServiceError::Internal("the decoder returned no set".into()))?;
             service.render_now(&set, &camera, view.background)
@@ -432,30 +499,31 @@ impl Service {
         Ok(times.into_iter().zip(cameras).collect())
     }
 
-    /// Renders every frame of a planned path (decoding its times in batches).
+    /// Renders every frame of a planned path of clip `id`, its sets decoded exactly or
+    /// approximated (keyframes decoded in one batch, pruning).
     pub fn render_path_now(
         &self,
+        id: &str,
         encoding: &Encoding,
-        plan: &[(f64, Camera)],
+        path: &[(f64, Camera)],
         background: [f32; 3],
+        approximation: &Approximation,
     ) -> Result<Vec<Image>, ServiceError> {
-        self.render_path_keyframed_now(encoding, plan, background, &Keyframes::Exact)
-    }
-
-    /// Renders every frame of a planned path, its sets decoded exactly or through `keyframes`.
-    pub fn render_path_keyframed_now(
-        &self,
-        encoding: &Encoding,
-        plan: &[(f64, Camera)],
-        background: [f32; 3],
-        keyframes: &Keyframes,
-    ) -> Result<Vec<Image>, ServiceError> {
-        let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
-        let sets = self.decode_keyframed_now(encoding, &times, keyframes)?;
-        sets.iter()
-            .zip(plan)
+        let times: Vec<f64> = path.iter().map(|(t, _)| *t).collect();
+        let sets = self.decode_keyframed_now(encoding, &times, &approximation.keyframes)?;
+        let keep = self.keep_now(id, encoding, approximation.prune.as_ref())?;
+        prune(keep.as_deref(), sets)?
+            .iter()
+            .zip(path)
             .map(|((_, set), (_, camera))| self.render_now(set, camera, background))
             .collect()
+    }
+
+    /// Deletes clip `id`: its record, features and frames, and what pruning measured of it.
+    pub fn delete(&self, id: &str) -> Result<(), ServiceError> {
+        self.store.delete(id)?;
+        self.analyses.forget(id);
+        Ok(())
     }
 
     /// The clip's context frame `index` (upload order) as PNG bytes.
@@ -479,6 +547,28 @@ impl Service {
     pub fn model_key(&self) -> &str {
         &self.model_key
     }
+}
+
+/// Where the sets of a multi-time request come from, and which Gaussians they keep: decided once
+/// ([`Service::plan_sets_now`]), then served piece by piece ([`Service::sets_now`]).
+pub struct SetPlan {
+    /// The keyframes to interpolate from (`None`: every set decoded exactly).
+    track: Option<KeyframeTrack>,
+    /// The Gaussians kept (`None`: all).
+    keep: Option<Vec<bool>>,
+}
+
+/// The Gaussians of each set that `keep` keeps (all of them without it).
+fn prune(
+    keep: Option<&[bool]>,
+    sets: Vec<(f64, GaussianSet)>,
+) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
+    let Some(keep) = keep else {
+        return Ok(sets);
+    };
+    sets.into_iter()
+        .map(|(t, set)| Ok((t, set.select(keep)?)))
+        .collect()
 }
 
 /// Counts the sets the decoder computed and those interpolated between keyframes.

@@ -310,6 +310,8 @@ fn api_keys_and_grpc_limits_are_enforced_and_the_server_keeps_serving() {
             times: vec![0.3],
             precision: 0,
             keyframes: None,
+            quality: 0,
+            prune: None,
         };
         let refused = grpc.decode(request()).await.unwrap_err();
         assert_eq!(refused.code(), tonic::Code::Unauthenticated, "{refused:?}");
@@ -334,6 +336,8 @@ fn api_keys_and_grpc_limits_are_enforced_and_the_server_keeps_serving() {
             times: vec![0.3; 200_000],
             precision: 0,
             keyframes: None,
+            quality: 0,
+            prune: None,
         });
         oversized
             .metadata_mut()
@@ -392,6 +396,8 @@ fn a_full_work_queue_is_refused_over_rest_and_grpc_with_its_kind_and_the_old_set
                 times: vec![0.3],
                 precision: 0,
                 keyframes: None,
+                quality: 0,
+                prune: None,
             })
             .await
             .unwrap_err();

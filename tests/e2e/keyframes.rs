@@ -173,6 +173,7 @@ fn keyframed_decodes_and_streams_stay_close_to_exact_and_bad_options_are_400() {
             spacing: Some(pb::stream_gaussians_request::Spacing::Step(0.025)),
             precision: pb::Precision::F32 as i32,
             keyframes,
+            ..Default::default()
         };
         let mut collect = async |request| {
             let mut frames = grpc.stream_gaussians(request).await.unwrap().into_inner();
@@ -246,6 +247,7 @@ fn keyframed_decodes_and_streams_stay_close_to_exact_and_bad_options_are_400() {
                 keyframes: Some(pb::Keyframes {
                     mode: Some(pb::keyframes::Mode::EveryS(-1.0)),
                 }),
+                ..Default::default()
             })
             .await
             .unwrap_err();

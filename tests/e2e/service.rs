@@ -227,6 +227,8 @@ fn a_real_video_goes_through_upload_decode_render_and_stream_over_http_and_grpc(
                 times: vec![1.0],
                 precision: 0,
                 keyframes: None,
+                quality: 0,
+                prune: None,
             })
             .await
             .unwrap()
@@ -257,6 +259,8 @@ fn a_real_video_goes_through_upload_decode_render_and_stream_over_http_and_grpc(
                 spacing: Some(pb::stream_gaussians_request::Spacing::Fps(2.0)),
                 precision: pb::Precision::F16 as i32,
                 keyframes: None,
+                quality: 0,
+                prune: None,
             })
             .await
             .unwrap()

@@ -4,7 +4,9 @@ use std::io::IsTerminal as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::bail;
-use c4g_client::{GaussianFormat, GaussianFrame, Keyframes, Precision};
+use c4g_client::{
+    Approximation, GaussianFormat, GaussianFrame, Keyframes, Precision, Prune, Quality,
+};
 use indicatif::HumanBytes;
 use serde_json::json;
 
@@ -30,10 +32,20 @@ impl From<Format> for GaussianFormat {
     }
 }
 
-/// Keyframed decoding (decode, render along a trajectory, stream): the server decodes exact sets
-/// at keyframes and interpolates the rest, for fewer decoder runs. At most one mode.
+/// The speed/accuracy trade (decode, render, stream): a quality preset, and the knobs it stands
+/// for, which the flags below override. Keyframes: the server decodes exact sets at keyframes
+/// and interpolates the rest, for fewer decoder runs (at most one mode). Pruning: it drops the
+/// Gaussians that change nothing visible.
 #[derive(Debug, Clone, clap::Args)]
-pub(super) struct KeyframeArgs {
+pub(super) struct ApproximationArgs {
+    /// A named trade: exact (the server's default), balanced (within 0.1 dB of exact on the
+    /// measured scenes) or fast (within 0.5 dB).
+    #[arg(long, value_enum, value_name = "PRESET")]
+    quality: Option<QualityArg>,
+    /// Drop the Gaussians whose summed blending weight stays under PX pixels in every view the
+    /// server analyses (0.5 is its default floor; 0 keeps every visible Gaussian).
+    #[arg(long, value_name = "PX")]
+    prune: Option<f32>,
     /// Decode N keyframes spread evenly over the times and interpolate the sets between them.
     #[arg(
         long = "keyframes",
@@ -53,9 +65,33 @@ pub(super) struct KeyframeArgs {
     keyframe_max: Option<u32>,
 }
 
-impl KeyframeArgs {
-    /// The keyframes the flags ask for; `None`: every set exact.
-    pub(super) fn keyframes(&self) -> Option<Keyframes> {
+/// The presets of `--quality`.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum QualityArg {
+    Exact,
+    Balanced,
+    Fast,
+}
+
+impl ApproximationArgs {
+    /// The trade the flags ask for; every flag unset: exact.
+    pub(super) fn approximation(&self) -> Approximation {
+        Approximation {
+            quality: self.quality.map(|q| match q {
+                QualityArg::Exact => Quality::Exact,
+                QualityArg::Balanced => Quality::Balanced,
+                QualityArg::Fast => Quality::Fast,
+            }),
+            keyframes: self.keyframes(),
+            prune: self.prune.map(|px| Prune {
+                contribution_px: Some(px),
+                opacity: None,
+            }),
+        }
+    }
+
+    /// The keyframes the flags ask for; `None`: the preset's.
+    fn keyframes(&self) -> Option<Keyframes> {
         match (self.keyframes, self.keyframe_every, self.keyframe_tolerance) {
             (Some(count), _, _) => Some(Keyframes::Count { count }),
             (None, Some(seconds), _) => Some(Keyframes::Every { seconds }),
@@ -92,7 +128,7 @@ pub struct DecodeArgs {
     #[arg(short, long)]
     output: Option<PathBuf>,
     #[command(flatten)]
-    keyframes: KeyframeArgs,
+    approximation: ApproximationArgs,
 }
 
 #[derive(Debug, clap::Args)]
@@ -109,21 +145,26 @@ pub struct ExportArgs {
 
 pub async fn run(cx: &Context, args: DecodeArgs) -> anyhow::Result<()> {
     let explicit = args.format.map(GaussianFormat::from);
-    let keyframes = args.keyframes.keyframes();
-    let keyframes = keyframes.as_ref();
+    let approximation = args.approximation.approximation();
+    let approximation = &approximation;
     if let Some(path) = &args.output {
         let format = explicit
             .or_else(|| GaussianFormat::from_extension(path))
             .unwrap_or(GaussianFormat::Json);
-        return fetch_to_file(cx, &args.clip, &args.times, format, path, keyframes).await;
+        return fetch_to_file(cx, &args.clip, &args.times, format, path, approximation).await;
     }
     match explicit {
         // Without a format, a person gets a summary and a script (`--json`) the server's JSON.
-        None if !cx.json => summarise(cx, &args.clip, &args.times, keyframes).await,
+        None if !cx.json => summarise(cx, &args.clip, &args.times, approximation).await,
         None | Some(GaussianFormat::Json) => {
             let bytes = cx
                 .client
-                .gaussians_raw_keyframed(&args.clip, &args.times, GaussianFormat::Json, keyframes)
+                .gaussians_raw_approximated(
+                    &args.clip,
+                    &args.times,
+                    GaussianFormat::Json,
+                    approximation,
+                )
                 .await?;
             emit(&String::from_utf8_lossy(&bytes))?;
             if !bytes.ends_with(b"\n") {
@@ -137,7 +178,7 @@ pub async fn run(cx: &Context, args: DecodeArgs) -> anyhow::Result<()> {
             }
             let bytes = cx
                 .client
-                .gaussians_raw_keyframed(&args.clip, &args.times, format, keyframes)
+                .gaussians_raw_approximated(&args.clip, &args.times, format, approximation)
                 .await?;
             super::emit_bytes(&bytes)
         }
@@ -152,7 +193,15 @@ pub async fn export(cx: &Context, args: ExportArgs) -> anyhow::Result<()> {
             args.output.display()
         ),
     };
-    fetch_to_file(cx, &args.clip, &[args.time], format, &args.output, None).await
+    fetch_to_file(
+        cx,
+        &args.clip,
+        &[args.time],
+        format,
+        &args.output,
+        &Approximation::default(),
+    )
+    .await
 }
 
 async fn fetch_to_file(
@@ -161,11 +210,11 @@ async fn fetch_to_file(
     times: &[f64],
     format: GaussianFormat,
     path: &Path,
-    keyframes: Option<&Keyframes>,
+    approximation: &Approximation,
 ) -> anyhow::Result<()> {
     let bytes = cx
         .client
-        .gaussians_raw_keyframed(clip, times, format, keyframes)
+        .gaussians_raw_approximated(clip, times, format, approximation)
         .await?;
     write_file(path, &bytes).await?;
     if cx.json {
@@ -191,11 +240,11 @@ async fn summarise(
     cx: &Context,
     clip: &str,
     times: &[f64],
-    keyframes: Option<&Keyframes>,
+    approximation: &Approximation,
 ) -> anyhow::Result<()> {
     let frames = cx
         .client
-        .gaussians_keyframed(clip, times, Precision::F32, keyframes)
+        .gaussians_approximated(clip, times, Precision::F32, approximation)
         .await?;
     let text: String = frames.iter().map(|f| frame_summary(f) + "\n").collect();
     emit(&text)

@@ -7,7 +7,7 @@ use c4g_client::{RenderFormat, RenderRequest, TrajectoryPreset};
 use indicatif::HumanBytes;
 use serde_json::json;
 
-use super::decode::KeyframeArgs;
+use super::decode::ApproximationArgs;
 use super::{Context, emit_json, emit_line, secs, write_file};
 
 /// The formats of `--format`.
@@ -82,9 +82,10 @@ pub struct Args {
     /// The file to write.
     #[arg(short, long)]
     output: PathBuf,
-    /// Keyframes for a video's sets (the server refuses them for a single image).
+    /// Quality, pruning, and keyframes for a video's sets (the server refuses keyframes for a
+    /// single image).
     #[command(flatten)]
-    keyframes: KeyframeArgs,
+    approximation: ApproximationArgs,
 }
 
 pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
@@ -118,7 +119,7 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
         start: args.start,
         end: args.end,
         fps: args.fps,
-        keyframes: args.keyframes.keyframes(),
+        approximation: args.approximation.approximation(),
         ..RenderRequest::default()
     };
     let rendered = cx.client.render(&args.clip, &request).await?;

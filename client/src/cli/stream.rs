@@ -7,7 +7,7 @@ use c4g_client::{Precision, Spacing, StreamOptions};
 use futures_util::StreamExt;
 use serde_json::json;
 
-use super::decode::KeyframeArgs;
+use super::decode::ApproximationArgs;
 use super::{Context, emit_json, emit_line, secs};
 
 /// The values of `--precision`.
@@ -40,7 +40,7 @@ pub struct Args {
     #[arg(short, long, value_name = "DIR")]
     output: Option<PathBuf>,
     #[command(flatten)]
-    keyframes: KeyframeArgs,
+    approximation: ApproximationArgs,
 }
 
 pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
@@ -57,7 +57,7 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
             PrecisionArg::F32 => Precision::F32,
             PrecisionArg::F16 => Precision::F16,
         },
-        keyframes: args.keyframes.keyframes(),
+        approximation: args.approximation.approximation(),
     };
     if let Some(dir) = &args.output {
         tokio::fs::create_dir_all(dir)

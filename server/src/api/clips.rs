@@ -214,7 +214,7 @@ pub async fn delete(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<StatusCode, ServiceError> {
-    state.service()?.store.delete(&id)?;
+    state.service()?.delete(&id)?;
     Ok(StatusCode::NO_CONTENT)
 }
 

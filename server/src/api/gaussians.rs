@@ -10,6 +10,7 @@ use serde::Deserialize;
 
 use super::json::JsonBody;
 use crate::keyframes::KeyframesSpec;
+use crate::quality::{Preset, PruneSpec, QualitySpec};
 use crate::wire::{self, Precision};
 use crate::{AppState, ServiceError};
 
@@ -21,8 +22,12 @@ pub struct GaussiansRequest {
     format: Option<GaussianFormat>,
     #[serde(default)]
     precision: Precision,
-    /// Exact sets at keyframes, interpolated between them (default: every time exact).
+    /// A named speed/accuracy trade: exact (the default), balanced, fast.
+    quality: Option<Preset>,
+    /// Exact sets at keyframes, interpolated between them (default: the preset's).
     keyframes: Option<KeyframesSpec>,
+    /// Drop the Gaussians that change nothing visible (default: the preset's).
+    prune: Option<PruneSpec>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
@@ -76,7 +81,12 @@ pub async fn decode(
             "ply and splat hold one set: ask for one time (or use json or binary)",
         ));
     }
-    let frames = service.decode(&id, times, request.keyframes).await?;
+    let quality = QualitySpec {
+        preset: request.quality,
+        keyframes: request.keyframes,
+        prune: request.prune,
+    };
+    let frames = service.decode(&id, times, quality).await?;
     Ok(match format {
         GaussianFormat::Json => Json(wire::json(&frames)).into_response(),
         GaussianFormat::Binary => (

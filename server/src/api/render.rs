@@ -11,6 +11,7 @@ use super::json::JsonBody;
 use crate::camera::CameraSpec;
 use crate::image_formats::{ImageFormat, encode_image, encode_mp4, to_rgb8};
 use crate::keyframes::KeyframesSpec;
+use crate::quality::{Preset, PruneSpec, QualitySpec};
 use crate::service::{PathRequest, ViewRequest};
 use crate::{AppState, ServiceError};
 
@@ -34,8 +35,12 @@ pub struct RenderRequest {
     start: Option<f64>,
     end: Option<f64>,
     fps: Option<f64>,
-    /// A trajectory's sets from keyframes, interpolated between them (default: every frame exact).
+    /// A named speed/accuracy trade: exact (the default), balanced, fast.
+    quality: Option<Preset>,
+    /// A trajectory's sets from keyframes, interpolated between them (default: the preset's).
     keyframes: Option<KeyframesSpec>,
+    /// Drop the Gaussians that change nothing visible (default: the preset's).
+    prune: Option<PruneSpec>,
 }
 
 pub async fn render(
@@ -44,6 +49,11 @@ pub async fn render(
     JsonBody(request): JsonBody<RenderRequest>,
 ) -> Result<Response, ServiceError> {
     let service = state.service()?.clone();
+    let quality = QualitySpec {
+        preset: request.quality,
+        keyframes: request.keyframes,
+        prune: request.prune,
+    };
     let is_path = request.trajectory.is_some() || request.cameras.is_some();
     if !is_path {
         if request.frames.is_some()
@@ -66,7 +76,7 @@ pub async fn render(
             background: request.background,
         };
         let t = view.t;
-        let image = service.render_view(&id, view).await?;
+        let image = service.render_view(&id, view, quality).await?;
         let bytes = encode_image(&image, format)?;
         return Ok(with_headers(
             format,
@@ -107,12 +117,12 @@ pub async fn render(
     let record = service.store.get(&id)?;
     let plan = service.plan_path(&record, &path)?;
     let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
-    let keyframes = service.keyframes(request.keyframes.as_ref(), &times)?;
+    let approximation = service.approximation(&quality, &times)?;
     let encoding = service.store.encoding(&id).await?;
     let background = path.background;
     let images = service
         .work(move |service| {
-            service.render_path_keyframed_now(&encoding, &plan, background, &keyframes)
+            service.render_path_now(&id, &encoding, &plan, background, &approximation)
         })
         .await?;
     let (w, h) = images.first().map_or((0, 0), |i| (i.width, i.height));

@@ -1,0 +1,124 @@
+//! How a request trades accuracy for speed (`docs/api.md`, "Quality"): a named preset, and the
+//! knobs it stands for, keyframes and pruning, which a request may set itself (an explicit knob
+//! overrides the preset's). The default everywhere is exact: what the model computes.
+
+use c4g_proto::v1 as proto;
+use serde::{Deserialize, Serialize};
+
+use crate::Keyframes;
+
+/// A named point of the speed/accuracy trade, as `docs/tradeoffs.md` measures them.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Quality {
+    /// Every set decoded exactly, every Gaussian.
+    #[default]
+    Exact,
+    /// Adaptive keyframes at a tight tolerance and light pruning: within 0.1 dB of exact on the
+    /// measured scenes.
+    Balanced,
+    /// Looser keyframes and pruning: within 0.5 dB of exact on the measured scenes.
+    Fast,
+}
+
+impl Quality {
+    /// The gRPC enum value.
+    pub fn to_proto(self) -> proto::Quality {
+        match self {
+            Self::Exact => proto::Quality::Exact,
+            Self::Balanced => proto::Quality::Balanced,
+            Self::Fast => proto::Quality::Fast,
+        }
+    }
+}
+
+/// Drop the Gaussians that change nothing visible: measured once per clip by the server, the
+/// same Gaussians at every time. `Prune::default()` takes the server's floors.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Prune {
+    /// Largest summed blending weight, in pixels, of a dropped Gaussian in any analysed view
+    /// (server default 0.5).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub contribution_px: Option<f32>,
+    /// Largest opacity of a dropped Gaussian at any analysed time (server default 1/255).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub opacity: Option<f32>,
+}
+
+impl Prune {
+    /// The gRPC message.
+    pub fn to_proto(&self) -> proto::Prune {
+        proto::Prune {
+            contribution_px: self.contribution_px,
+            opacity: self.opacity,
+        }
+    }
+}
+
+/// The trade a request asks for; every field unset (the default) is exact. Serialises as the
+/// request fields `quality`, `keyframes` and `prune`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Approximation {
+    /// A named preset.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub quality: Option<Quality>,
+    /// Keyframes, overriding the preset's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub keyframes: Option<Keyframes>,
+    /// Pruning, overriding the preset's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub prune: Option<Prune>,
+}
+
+impl Approximation {
+    /// The preset `quality`, nothing overridden.
+    pub fn preset(quality: Quality) -> Self {
+        Self {
+            quality: Some(quality),
+            ..Self::default()
+        }
+    }
+
+    /// Only `keyframes`.
+    pub fn keyframes(keyframes: Keyframes) -> Self {
+        Self {
+            keyframes: Some(keyframes),
+            ..Self::default()
+        }
+    }
+
+    /// The gRPC `quality` value (unspecified: the server's default, exact).
+    pub fn proto_quality(&self) -> i32 {
+        self.quality
+            .map_or(proto::Quality::Unspecified, Quality::to_proto)
+            .into()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn serialises_as_the_request_fields() {
+        assert_eq!(
+            serde_json::to_value(Approximation::default()).unwrap(),
+            json!({})
+        );
+        let approximation = Approximation {
+            quality: Some(Quality::Fast),
+            keyframes: Some(Keyframes::Count { count: 4 }),
+            prune: Some(Prune {
+                contribution_px: Some(1.0),
+                opacity: None,
+            }),
+        };
+        assert_eq!(
+            serde_json::to_value(approximation).unwrap(),
+            json!({"quality": "fast", "keyframes": {"count": 4}, "prune": {"contribution_px": 1.0}})
+        );
+        assert_eq!(approximation.proto_quality(), proto::Quality::Fast as i32);
+    }
+}

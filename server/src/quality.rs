@@ -1,0 +1,260 @@
+//! How much accuracy a request trades for speed, as clients state it: a named preset
+//! (`"quality": "fast"`), and the knobs it stands for, `keyframes` and `prune`, which a request may
+//! also give itself (an explicit knob overrides the preset's). Resolved into an [`Approximation`].
+//!
+//! The presets are points on the Pareto front that `cargo bench -p c4g-engine --bench tradeoffs`
+//! measures (`docs/tradeoffs.md` has the table, the plot and the rule that chose them); the
+//! default, `exact`, changes nothing.
+
+use c4g_engine::Keyframes;
+use c4g_renderer::pruning::PruneOptions;
+use serde::{Deserialize, Serialize};
+
+use crate::ServiceError;
+use crate::keyframes::{self, KeyframesSpec};
+
+/// A named point of the speed/accuracy trade.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Preset {
+    /// Every set decoded exactly, every Gaussian returned: what the model computes.
+    #[default]
+    Exact,
+    /// Adaptive keyframes at a tight tolerance, and the Gaussians that change no measured view by
+    /// half a pixel dropped: within 0.1 dB of exact on the measured scenes.
+    Balanced,
+    /// Adaptive keyframes at a loose tolerance, and pruning at two pixels: within 0.5 dB of exact
+    /// on the measured scenes, and cheap enough to stream at thousands of sets a second.
+    Fast,
+}
+
+impl Preset {
+    /// Every preset, for documentation and tests.
+    pub const ALL: [Preset; 3] = [Preset::Exact, Preset::Balanced, Preset::Fast];
+
+    /// The preset's name on the wire.
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Exact => "exact",
+            Preset::Balanced => "balanced",
+            Preset::Fast => "fast",
+        }
+    }
+
+    /// The keyframes this preset decodes with (`None`: every set exact).
+    pub fn keyframes(self) -> Option<KeyframesSpec> {
+        let adaptive = |tolerance: f64, color_tolerance: f64| KeyframesSpec {
+            tolerance: Some(tolerance),
+            color_tolerance: Some(color_tolerance),
+            ..KeyframesSpec::default()
+        };
+        match self {
+            Preset::Exact => None,
+            Preset::Balanced => Some(adaptive(BALANCED_TOLERANCE, BALANCED_COLOR_TOLERANCE)),
+            Preset::Fast => Some(adaptive(FAST_TOLERANCE, FAST_COLOR_TOLERANCE)),
+        }
+    }
+
+    /// The pruning this preset applies (`None`: every Gaussian returned).
+    pub fn prune(self) -> Option<PruneSpec> {
+        let at = |contribution_px: f32| PruneSpec {
+            contribution_px: Some(contribution_px),
+            opacity: None,
+        };
+        match self {
+            Preset::Exact => None,
+            Preset::Balanced => Some(at(BALANCED_CONTRIBUTION_PX)),
+            Preset::Fast => Some(at(FAST_CONTRIBUTION_PX)),
+        }
+    }
+}
+
+// The presets' values, chosen from the trade-off measurement (docs/tradeoffs.md).
+const BALANCED_TOLERANCE: f64 = 0.002;
+const BALANCED_COLOR_TOLERANCE: f64 = 0.01;
+const BALANCED_CONTRIBUTION_PX: f32 = 0.5;
+const FAST_TOLERANCE: f64 = 0.01;
+const FAST_COLOR_TOLERANCE: f64 = 0.05;
+const FAST_CONTRIBUTION_PX: f32 = 2.0;
+
+/// Pruning as a client states it: drop the Gaussians that change nothing visible
+/// (`{"contribution_px": 0.5}`; `{}` takes the defaults).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PruneSpec {
+    /// Drop a Gaussian whose blending weights, summed over the pixels of every analysed view, stay
+    /// under this many pixels (default 0.5). 0 keeps every visible Gaussian.
+    pub contribution_px: Option<f32>,
+    /// Drop a Gaussian whose opacity stays under this at every analysed time (default 1/255,
+    /// below which the rasterizer skips it anyway). 0 keeps every Gaussian however faint.
+    pub opacity: Option<f32>,
+}
+
+impl PruneSpec {
+    /// The floors, checked: finite and non-negative; an opacity floor at most 1.
+    pub fn options(&self) -> Result<PruneOptions, ServiceError> {
+        let defaults = PruneOptions::default();
+        let contribution_floor = self.contribution_px.unwrap_or(defaults.contribution_floor);
+        if !contribution_floor.is_finite() || contribution_floor < 0.0 {
+            return Err(ServiceError::invalid(format!(
+                "prune contribution_px must be a finite, non-negative number of pixels, got \
+                 {contribution_floor}"
+            )));
+        }
+        let opacity_floor = self.opacity.unwrap_or(defaults.opacity_floor);
+        if !(0.0..=1.0).contains(&opacity_floor) {
+            return Err(ServiceError::invalid(format!(
+                "prune opacity must be between 0 and 1, got {opacity_floor}"
+            )));
+        }
+        Ok(PruneOptions {
+            opacity_floor,
+            contribution_floor,
+        })
+    }
+}
+
+/// The trade a request asks for, as it states it.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct QualitySpec {
+    /// A named preset (default: exact).
+    pub preset: Option<Preset>,
+    /// Keyframes, overriding the preset's.
+    pub keyframes: Option<KeyframesSpec>,
+    /// Pruning, overriding the preset's.
+    pub prune: Option<PruneSpec>,
+}
+
+impl QualitySpec {
+    /// Only keyframes, as stated.
+    pub fn keyframes(keyframes: Option<KeyframesSpec>) -> Self {
+        Self {
+            keyframes,
+            ..Self::default()
+        }
+    }
+}
+
+/// The trade a request gets, checked.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Approximation {
+    /// Which sets are decoded exactly and which interpolated.
+    pub keyframes: Keyframes,
+    /// Which Gaussians are dropped (`None`: none).
+    pub prune: Option<PruneOptions>,
+}
+
+impl Approximation {
+    /// What the model computes: every set exact, every Gaussian.
+    pub const EXACT: Approximation = Approximation {
+        keyframes: Keyframes::Exact,
+        prune: None,
+    };
+}
+
+/// The approximation `spec` asks for over `times`, checked against `max_times`
+/// (`C4G_MAX_TIMES`, which bounds the keyframes).
+pub fn resolve(
+    spec: &QualitySpec,
+    times: &[f64],
+    max_times: usize,
+) -> Result<Approximation, ServiceError> {
+    let preset = spec.preset.unwrap_or_default();
+    let keyframes = spec.keyframes.or_else(|| preset.keyframes());
+    let keyframes = keyframes::resolve(keyframes.as_ref(), times, max_times)?;
+    let prune = spec
+        .prune
+        .or_else(|| preset.prune())
+        .map(|p| p.options())
+        .transpose()?;
+    Ok(Approximation { keyframes, prune })
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    const TIMES: [f64; 3] = [0.0, 0.25, 0.5];
+
+    #[test]
+    fn no_preset_is_exact() {
+        let approx = resolve(&QualitySpec::default(), &TIMES, 64).unwrap();
+        assert_eq!(approx, Approximation::EXACT);
+        let exact = QualitySpec {
+            preset: Some(Preset::Exact),
+            ..QualitySpec::default()
+        };
+        assert_eq!(resolve(&exact, &TIMES, 64).unwrap(), Approximation::EXACT);
+    }
+
+    #[test]
+    fn presets_other_than_exact_keyframe_and_prune() {
+        for preset in [Preset::Balanced, Preset::Fast] {
+            let spec = QualitySpec {
+                preset: Some(preset),
+                ..QualitySpec::default()
+            };
+            let approx = resolve(&spec, &TIMES, 64).unwrap();
+            assert!(!approx.keyframes.is_exact(), "{}", preset.name());
+            assert!(approx.prune.is_some(), "{}", preset.name());
+        }
+    }
+
+    #[test]
+    fn fast_is_looser_than_balanced() {
+        let floor = |p: Preset| p.prune().unwrap().options().unwrap().contribution_floor;
+        let tolerance = |p: Preset| p.keyframes().unwrap().tolerance.unwrap();
+        assert!(floor(Preset::Fast) > floor(Preset::Balanced));
+        assert!(tolerance(Preset::Fast) > tolerance(Preset::Balanced));
+    }
+
+    #[test]
+    fn explicit_knobs_override_the_preset() {
+        let spec = QualitySpec {
+            preset: Some(Preset::Fast),
+            keyframes: Some(KeyframesSpec {
+                count: Some(2),
+                ..KeyframesSpec::default()
+            }),
+            prune: Some(PruneSpec {
+                contribution_px: Some(0.0),
+                opacity: Some(0.0),
+            }),
+        };
+        let approx = resolve(&spec, &TIMES, 64).unwrap();
+        assert_eq!(approx.keyframes, Keyframes::Count { n: 2 });
+        let prune = approx.prune.unwrap();
+        assert_eq!((prune.contribution_floor, prune.opacity_floor), (0.0, 0.0));
+    }
+
+    #[test]
+    fn bad_floors_are_refused_with_their_name() {
+        for (spec, name) in [
+            (
+                PruneSpec {
+                    contribution_px: Some(-1.0),
+                    opacity: None,
+                },
+                "contribution_px",
+            ),
+            (
+                PruneSpec {
+                    contribution_px: Some(f32::NAN),
+                    opacity: None,
+                },
+                "contribution_px",
+            ),
+            (
+                PruneSpec {
+                    contribution_px: None,
+                    opacity: Some(1.5),
+                },
+                "opacity",
+            ),
+        ] {
+            let error = spec.options().unwrap_err().to_string();
+            assert!(error.contains(name), "{error}");
+        }
+    }
+}
