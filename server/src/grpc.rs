@@ -91,6 +91,7 @@ fn clip_proto(record: &ClipRecord, created: bool) -> pb::Clip {
         source_kind: record.source.kind.clone(),
         source_fps: record.source.fps,
         created,
+        source_warnings: record.source.warnings.clone(),
     }
 }
 

@@ -90,6 +90,7 @@ pub fn read(
             height,
             duration: times.last().copied().unwrap_or(0.0),
             fps,
+            warnings: Vec::new(),
         },
         frame_step: frame_step(&times, fps),
     })

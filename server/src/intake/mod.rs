@@ -99,7 +99,8 @@ pub const DEFAULT_IMAGE_FPS: f64 = 10.0;
 pub struct SourceInfo {
     /// `video` or `images`.
     pub kind: String,
-    /// Frames in the source.
+    /// Frames in the source: for a video, the frames that decode (not what its container
+    /// declares).
     pub frames: usize,
     /// Frame width, pixels.
     pub width: u32,
@@ -107,8 +108,14 @@ pub struct SourceInfo {
     pub height: u32,
     /// Time of the last frame, seconds (the first is at 0).
     pub duration: f64,
-    /// The video's average frame rate, or the fps image frames were given.
+    /// The rate of a video's frames (frames after the first over the time of the last; the
+    /// container's average rate where it agrees within 1%), or the fps image frames were given.
     pub fps: f64,
+    /// What the client should know about how the source was read, when it was not as the
+    /// container declared: frames that did not decode and were skipped, a frame size that
+    /// changes, a decode that ended early. Absent (empty) in clips stored before it was recorded.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 /// A context frame: its media time and its pixels.
@@ -330,5 +337,28 @@ mod tests {
         assert_eq!(frame_step(&[0.0], 10.0), Some(0.1));
         assert_eq!(frame_step(&[0.0], 0.0), None);
         assert_eq!(frame_step(&[], f64::NAN), None);
+    }
+
+    #[test]
+    fn a_source_stored_before_warnings_were_recorded_loads_and_an_empty_list_is_not_written() {
+        let old: SourceInfo = serde_json::from_value(serde_json::json!({
+            "kind": "video", "frames": 141, "width": 368, "height": 480, "duration": 7.0, "fps": 20.0,
+        }))
+        .unwrap();
+        assert!(old.warnings.is_empty());
+        assert!(
+            serde_json::to_value(&old)
+                .unwrap()
+                .get("warnings")
+                .is_none()
+        );
+        let warned = SourceInfo {
+            warnings: vec!["skipped".into()],
+            ..old
+        };
+        assert_eq!(
+            serde_json::to_value(&warned).unwrap()["warnings"][0],
+            "skipped"
+        );
     }
 }

@@ -7,7 +7,8 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum MediaKind {
-    /// A container with a known video signature (MP4/MOV, Matroska/WebM, AVI, MPEG-TS/PS, ...).
+    /// A container with a known video signature (MP4/MOV, Matroska/WebM, AVI, MPEG-TS/PS, ...),
+    /// or a GIF (animated or not: FFmpeg reads its frames and their delays).
     Video,
     /// A zip archive of image frames.
     Zip,
@@ -28,6 +29,10 @@ pub fn sniff(data: &[u8]) -> MediaKind {
         MediaKind::Zip
     } else if at(257, b"ustar") {
         MediaKind::Tar
+    } else if at(0, b"GIF87a") || at(0, b"GIF89a") {
+        // Before the image check: a GIF is a clip of frames with their own delays, which FFmpeg
+        // reads (the image decoder here reads PNG and JPEG only, and one frame of each).
+        MediaKind::Video
     } else if image::guess_format(data).is_ok() {
         MediaKind::Image
     } else if is_video(data) {
@@ -69,6 +74,8 @@ mod tests {
         assert_eq!(sniff(&tar), MediaKind::Tar);
         assert_eq!(sniff(b"\x00\x00\x00\x20ftypisom"), MediaKind::Video);
         assert_eq!(sniff(b"\x89PNG\r\n\x1a\n...."), MediaKind::Image);
+        assert_eq!(sniff(b"GIF89a\x40\x00\x30\x00"), MediaKind::Video);
+        assert_eq!(sniff(b"GIF87a\x40\x00\x30\x00"), MediaKind::Video);
         assert_eq!(sniff(b"hello, this is text"), MediaKind::Unknown);
         assert_eq!(sniff(b""), MediaKind::Unknown);
     }

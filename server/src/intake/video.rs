@@ -1,11 +1,22 @@
 //! Videos, read by FFmpeg in child processes: hostile media can crash or hang only the child,
 //! which a time limit kills. Three steps:
-//! 1. `ffprobe` reads the stream header: size, declared frame count and duration are checked
-//!    before anything is decoded;
-//! 2. `ffprobe` lists every packet's presentation time without decoding (sorted, these are the
-//!    frames' times, so the context frames can be chosen by time; a clip with too many frames
-//!    stops the listing);
-//! 3. `ffmpeg` decodes, and only the chosen frames come out, as raw RGB.
+//! 1. `ffprobe` reads the stream headers and picks the video stream FFmpeg will decode (the
+//!    first that is not a cover picture); its declared size, frame count and duration are
+//!    checked before anything is decoded;
+//! 2. `ffprobe` decodes that stream and lists every frame that comes out, in display order,
+//!    with its timestamp and size (a clip with too many frames, or too large a frame, stops the
+//!    listing). These are the clip's frames: what the container declares (frame counts,
+//!    durations, average rates) is a hint, never a promise, since edit lists hide packets,
+//!    decoders drop frames they cannot decode and frame rates vary;
+//! 3. `ffmpeg` decodes the stream again, and only the chosen frames come out, as raw RGB at one
+//!    size. Frame `n` of this pass is frame `n` of the listing: both run the same decoder, with
+//!    the same threads, on the same stream, and the filter graph is never rebuilt mid-stream
+//!    (which would restart its frame count).
+//!
+//! What the listing saw but the clip still reads past goes into the source's warnings: frames
+//! that did not decode (they are skipped: the context frames come from the frames that did), a
+//! frame size that changes mid-stream (later frames are scaled to the first size), and a second
+//! pass that ends early (the context frames are chosen again from the frames it did give).
 
 use std::path::Path;
 use std::process::Stdio;
@@ -13,7 +24,7 @@ use std::process::Stdio;
 use bytes::Bytes;
 use image::RgbImage;
 use serde::Deserialize;
-use tokio::io::{AsyncBufReadExt, AsyncReadExt, BufReader};
+use tokio::io::{AsyncBufReadExt, AsyncRead, AsyncReadExt, BufReader};
 use tokio::process::Command;
 
 use super::sampling::select;
@@ -23,6 +34,13 @@ use super::{
 };
 use crate::ServiceError;
 use crate::config::Limits;
+
+/// The stream both FFmpeg passes read: the first video stream that is not an attached picture
+/// (cover art), as `-map 0:V:0` and `-select_streams V:0` mean.
+const VIDEO_STREAM: &str = "V:0";
+
+/// Decoder threads, the same in both passes (so that they give the same frames).
+const DECODER_THREADS: &str = "2";
 
 /// Reads a video upload.
 pub async fn read(
@@ -42,7 +60,8 @@ pub async fn read(
     let deadline = tokio::time::Instant::now() + limits.intake_timeout;
     let work = async {
         let stream = probe(file.path(), kind, tools).await?;
-        let (width, height) = stream.display_size();
+        let (width, height) =
+            stream.display_size(stream.width.unwrap_or(0), stream.height.unwrap_or(0));
         check_frame_size(width, height, limits)?;
         if let Some(declared) = stream.declared_frames() {
             check_frame_count(declared, limits)?;
@@ -50,16 +69,35 @@ pub async fn read(
         if let Some(duration) = stream.duration {
             check_duration(duration, limits)?;
         }
-        let times = frame_times(file.path(), tools, limits).await?;
-        if times.is_empty() {
-            return Err(ServiceError::UnreadableMedia(
-                "the video has no decodable frames (truncated or corrupt?)".into(),
-            ));
+        let listing = list_frames(file.path(), tools, limits).await?;
+        let Some(first) = listing.frames.first() else {
+            return Err(ServiceError::UnreadableMedia(format!(
+                "the video has no frames that decode (empty, truncated or corrupt?){}",
+                detail(listing.log.first.as_deref())
+            )));
+        };
+        // The decoded frames' size, not the header's, is what comes out.
+        let (width, height) = stream.display_size(first.width, first.height);
+        check_frame_size(width, height, limits)?;
+        let raw: Vec<Option<f64>> = listing.frames.iter().map(|f| f.time).collect();
+        let mut times = monotonic_times(&raw);
+        let mut warnings = listing.warnings(&times, stream.declared_frames());
+        check_duration(times.last().copied().unwrap_or(0.0), limits)?;
+
+        let (chosen, images) = decode_context(
+            file.path(),
+            tools,
+            (width, height),
+            &mut times,
+            options,
+            limits,
+            &mut warnings,
+        )
+        .await?;
+        for warning in &warnings {
+            tracing::warn!(%warning, "video intake");
         }
         let duration = times.last().copied().unwrap_or(0.0);
-        check_duration(duration, limits)?;
-        let chosen = select(&times, options, limits)?;
-        let images = decode_frames(file.path(), tools, width, height, &chosen).await?;
         let frames = chosen
             .iter()
             .zip(images)
@@ -68,13 +106,7 @@ pub async fn read(
                 image,
             })
             .collect();
-        let fps = stream.frame_rate().unwrap_or_else(|| {
-            if duration > 0.0 {
-                (times.len() - 1) as f64 / duration
-            } else {
-                0.0
-            }
-        });
+        let fps = frame_rate(&times, stream.frame_rate());
         Ok(Intake {
             frames,
             source: SourceInfo {
@@ -84,6 +116,7 @@ pub async fn read(
                 height,
                 duration,
                 fps,
+                warnings,
             },
             frame_step: frame_step(&times, fps),
         })
@@ -105,6 +138,8 @@ struct Probe {
 
 #[derive(Debug, Deserialize)]
 struct Stream {
+    codec_type: Option<String>,
+    codec_name: Option<String>,
     width: Option<u32>,
     height: Option<u32>,
     nb_frames: Option<String>,
@@ -112,7 +147,15 @@ struct Stream {
     #[serde(default, deserialize_with = "number_from_string")]
     duration: Option<f64>,
     #[serde(default)]
+    disposition: Disposition,
+    #[serde(default)]
     side_data_list: Vec<SideData>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+struct Disposition {
+    #[serde(default)]
+    attached_pic: u8,
 }
 
 #[derive(Debug, Deserialize)]
@@ -126,10 +169,14 @@ fn number_from_string<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<f
 }
 
 impl Stream {
-    /// The size FFmpeg decodes to: rotated by a quarter turn when the stream says so, since
-    /// FFmpeg applies the rotation.
-    fn display_size(&self) -> (u32, u32) {
-        let (w, h) = (self.width.unwrap_or(0), self.height.unwrap_or(0));
+    /// True for the stream [`VIDEO_STREAM`] selects (among the streams in order, the first).
+    fn is_video(&self) -> bool {
+        self.codec_type.as_deref() == Some("video") && self.disposition.attached_pic == 0
+    }
+
+    /// The size FFmpeg decodes frames of `width` × `height` to: rotated by a quarter turn when
+    /// the stream's display matrix says so, since FFmpeg applies the rotation.
+    fn display_size(&self, w: u32, h: u32) -> (u32, u32) {
         let quarter = self
             .side_data_list
             .iter()
@@ -151,8 +198,11 @@ impl Stream {
 
 async fn probe(path: &Path, kind: MediaKind, tools: &IntakeTools) -> Result<Stream, ServiceError> {
     let output = Command::new(&tools.ffprobe)
-        .args(["-v", "error", "-select_streams", "v:0", "-show_entries"])
-        .arg("stream=width,height,nb_frames,avg_frame_rate,duration:stream_side_data=rotation")
+        .args(["-v", "error", "-show_entries"])
+        .arg(
+            "stream=codec_type,codec_name,width,height,nb_frames,avg_frame_rate,duration\
+             :stream_disposition=attached_pic:stream_side_data=rotation",
+        )
         .args(["-of", "json"])
         .arg(path)
         .stdin(Stdio::null())
@@ -177,30 +227,174 @@ async fn probe(path: &Path, kind: MediaKind, tools: &IntakeTools) -> Result<Stre
     }
     let probe: Probe = serde_json::from_slice(&output.stdout)
         .map_err(|e| ServiceError::Internal(format!("unexpected ffprobe output: {e}")))?;
-    probe
+    let audio: Vec<String> = probe
         .streams
-        .into_iter()
-        .next()
-        .filter(|s| s.width.is_some() && s.height.is_some())
-        .ok_or_else(|| unreadable("it has no video stream".into()))
+        .iter()
+        .filter(|s| s.codec_type.as_deref() == Some("audio"))
+        .map(|s| {
+            s.codec_name
+                .clone()
+                .unwrap_or_else(|| "unknown codec".into())
+        })
+        .collect();
+    let Some(stream) = probe.streams.into_iter().find(Stream::is_video) else {
+        if !audio.is_empty() {
+            return Err(ServiceError::UnsupportedMedia(format!(
+                "the file holds audio only ({}) and no video stream: upload a video",
+                audio.join(", ")
+            )));
+        }
+        return Err(if kind == MediaKind::Video {
+            ServiceError::UnreadableMedia(
+                "the file is a media container without a video stream: upload a video".into(),
+            )
+        } else {
+            unreadable("it has no video stream".into())
+        });
+    };
+    if stream.width.is_none() || stream.height.is_none() {
+        return Err(ServiceError::UnsupportedMedia(format!(
+            "FFmpeg cannot decode the video stream (codec {}): it finds no frame size",
+            stream.codec_name.as_deref().unwrap_or("unknown")
+        )));
+    }
+    Ok(stream)
 }
 
-/// Presentation times of every frame, from the first frame's, in order, read from the packets
-/// (demuxing only: decoding happens once, later). Stops (and refuses the clip) past the frame
-/// limit.
-async fn frame_times(
+/// One decoded frame, as the listing saw it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct ListedFrame {
+    /// Its timestamp, seconds (`None` when the decoder gave it none).
+    time: Option<f64>,
+    /// Its decoded size (before any rotation), pixels.
+    width: u32,
+    height: u32,
+}
+
+/// The first frame whose size differs from the first frame's.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct SizeChange {
+    index: usize,
+    width: u32,
+    height: u32,
+}
+
+/// What the listing pass saw.
+#[derive(Debug, Default)]
+struct Listing {
+    /// Every frame that decoded, in display order.
+    frames: Vec<ListedFrame>,
+    /// Packets the demuxer gave the decoder (those an edit list discards not counted).
+    packets: usize,
+    /// The first size change, if any.
+    size_change: Option<SizeChange>,
+    /// What FFmpeg logged at error level.
+    log: Log,
+}
+
+impl Listing {
+    /// Adds a frame, noting the first size change.
+    fn push(&mut self, frame: ListedFrame) {
+        if let Some(first) = self.frames.first()
+            && self.size_change.is_none()
+            && (first.width, first.height) != (frame.width, frame.height)
+        {
+            self.size_change = Some(SizeChange {
+                index: self.frames.len(),
+                width: frame.width,
+                height: frame.height,
+            });
+        }
+        self.frames.push(frame);
+    }
+
+    /// What the client should know about how the video was read; `times` are the frames'
+    /// ([`monotonic_times`]), `declared` the container's frame count.
+    fn warnings(&self, times: &[f64], declared: Option<usize>) -> Vec<String> {
+        let mut warnings = Vec::new();
+        if let Some(error) = &self.log.first {
+            let lost = self.packets.saturating_sub(self.frames.len());
+            let skipped = match lost {
+                0 => "frames FFmpeg concealed may show damage".to_owned(),
+                1 => "1 packet decoded to no frame and was skipped".to_owned(),
+                n => format!("{n} packets decoded to no frame and were skipped"),
+            };
+            let listed = match declared {
+                Some(n) if n != self.frames.len() => format!(" (the container lists {n})"),
+                _ => String::new(),
+            };
+            warnings.push(format!(
+                "FFmpeg reported {} while decoding the video (the first: \"{error}\"): {skipped}; \
+                 the context frames come from the {} frames that decoded{listed}",
+                plural(self.log.count, "error"),
+                self.frames.len()
+            ));
+        }
+        if let (Some(change), Some(first)) = (self.size_change, self.frames.first()) {
+            let at = times
+                .get(change.index)
+                .map(|t| format!(" ({t:.3} s)"))
+                .unwrap_or_default();
+            warnings.push(format!(
+                "the frame size changes from {}x{} to {}x{} at frame {}{at}: frames of another \
+                 size are scaled to the first size",
+                first.width, first.height, change.width, change.height, change.index
+            ));
+        }
+        warnings
+    }
+}
+
+/// One line of the listing (`ffprobe -of compact`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Entry {
+    /// A packet read from the stream; `discard` when an edit list hides it.
+    Packet { discard: bool },
+    /// A decoded frame.
+    Frame(ListedFrame),
+}
+
+/// Parses one line of `ffprobe -of compact` output for `packet=flags` and
+/// `frame=best_effort_timestamp_time,width,height`: `section|key=value|...`, where a field
+/// without `=` opens a nested section (side data) whose fields are not the frame's.
+fn parse_entry(line: &str) -> Option<Entry> {
+    let mut fields = line.trim_end().split('|');
+    let section = fields.next()?;
+    let value = {
+        let pairs: Vec<(&str, &str)> = fields.map_while(|f| f.split_once('=')).collect();
+        move |key: &str| pairs.iter().find(|(k, _)| *k == key).map(|(_, v)| *v)
+    };
+    match section {
+        "packet" => Some(Entry::Packet {
+            discard: value("flags").is_some_and(|f| f.contains('D')),
+        }),
+        "frame" => Some(Entry::Frame(ListedFrame {
+            time: value("best_effort_timestamp_time")
+                .and_then(|t| t.parse::<f64>().ok())
+                .filter(|t| t.is_finite()),
+            width: value("width")?.parse().ok()?,
+            height: value("height")?.parse().ok()?,
+        })),
+        _ => None,
+    }
+}
+
+/// Decodes the video stream and lists its frames (see the module documentation). Stops, and
+/// refuses the clip, past the frame limit or at a frame larger than the size limit.
+async fn list_frames(
     path: &Path,
     tools: &IntakeTools,
     limits: &Limits,
-) -> Result<Vec<f64>, ServiceError> {
+) -> Result<Listing, ServiceError> {
     let mut child = Command::new(&tools.ffprobe)
-        .args(["-v", "error", "-select_streams", "v:0", "-show_entries"])
-        .arg("packet=pts_time")
-        .args(["-of", "csv=p=0"])
+        .args(["-v", "error", "-threads", DECODER_THREADS])
+        .args(["-select_streams", VIDEO_STREAM, "-show_entries"])
+        .arg("packet=flags:frame=best_effort_timestamp_time,width,height")
+        .args(["-of", "compact"])
         .arg(path)
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
-        .stderr(Stdio::null())
+        .stderr(Stdio::piped())
         .kill_on_drop(true)
         .spawn()
         .map_err(|e| tool_missing(&tools.ffprobe, e))?;
@@ -208,43 +402,45 @@ async fn frame_times(
         .stdout
         .take()
         .ok_or_else(|| ServiceError::Internal("ffprobe has no stdout".into()))?;
+    let log = child.stderr.take().map(drain_log);
     let mut lines = BufReader::new(stdout).lines();
-    let mut raw: Vec<Option<f64>> = Vec::new();
+    let mut listing = Listing::default();
     while let Some(line) = lines
         .next_line()
         .await
         .map_err(|e| ServiceError::Internal(format!("reading ffprobe: {e}")))?
     {
-        // One frame a line; side data can add empty lines.
-        let field = line.split(',').next().unwrap_or("").trim();
-        if field.is_empty() {
-            continue;
+        match parse_entry(&line) {
+            Some(Entry::Packet { discard }) => listing.packets += usize::from(!discard),
+            Some(Entry::Frame(frame)) => {
+                check_frame_count(listing.frames.len() + 1, limits)?;
+                if frame.width > limits.max_side || frame.height > limits.max_side {
+                    check_frame_size(frame.width, frame.height, limits)?;
+                }
+                listing.push(frame);
+            }
+            None => {}
         }
-        raw.push(field.parse::<f64>().ok().filter(|t| t.is_finite()));
-        check_frame_count(raw.len(), limits)?;
     }
     let status = child
         .wait()
         .await
         .map_err(|e| ServiceError::Internal(format!("waiting for ffprobe: {e}")))?;
-    if !status.success() && raw.is_empty() {
-        return Err(ServiceError::UnreadableMedia(
-            "the video's frames cannot be read (truncated or corrupt?)".into(),
-        ));
+    if let Some(log) = log {
+        listing.log = log.await.unwrap_or_default();
     }
-    // Packets come in decoding order; frames are shown in presentation order.
-    raw.sort_by(|a, b| match (a, b) {
-        (Some(a), Some(b)) => a.total_cmp(b),
-        // Frames without a time go last, where the fill below gives them one.
-        (Some(_), None) => std::cmp::Ordering::Less,
-        (None, Some(_)) => std::cmp::Ordering::Greater,
-        (None, None) => std::cmp::Ordering::Equal,
-    });
-    Ok(monotonic_times(&raw))
+    if !status.success() && listing.log.first.is_none() {
+        listing.log = Log {
+            count: 1,
+            first: Some(format!("ffprobe exited with {status}")),
+        };
+    }
+    Ok(listing)
 }
 
-/// Times relative to the first frame, strictly increasing: a frame without a timestamp, or with
-/// one that does not advance, is placed just after its predecessor by the median frame interval.
+/// Times relative to the first frame, in microseconds, strictly increasing, in the order given:
+/// a frame without a timestamp, or with one that does not advance, is placed just after its
+/// predecessor by the median frame interval.
 fn monotonic_times(raw: &[Option<f64>]) -> Vec<f64> {
     let mut steps: Vec<f64> = raw
         .windows(2)
@@ -264,10 +460,106 @@ fn monotonic_times(raw: &[Option<f64>]) -> Vec<f64> {
         times.push(t);
     }
     let first = times.first().copied().unwrap_or(0.0);
-    times.iter().map(|t| t - first).collect()
+    // ffprobe prints microseconds: rounding to them drops the subtraction's float noise.
+    times
+        .iter()
+        .map(|t| ((t - first) * 1e6).round() / 1e6)
+        .collect()
 }
 
-/// Decodes the video to RGB and keeps the frames at `chosen` (increasing indices).
+/// The rate of frames at `times`: frames after the first over the time of the last. The
+/// container's average rate stands in when it agrees within 1% (it is exact, where the
+/// measured rate carries the timestamps' rounding: 30.0000015 for 30) or when a single frame
+/// measures nothing.
+fn frame_rate(times: &[f64], declared: Option<f64>) -> f64 {
+    let duration = times.last().copied().unwrap_or(0.0);
+    if times.len() < 2 || duration <= 0.0 {
+        return declared.unwrap_or(0.0);
+    }
+    let measured = (times.len() - 1) as f64 / duration;
+    match declared {
+        Some(rate) if (rate - measured).abs() <= 0.01 * measured => rate,
+        _ => measured,
+    }
+}
+
+/// Chooses the context frames among `times` and decodes them at `size`. When the decode ends
+/// before the last of them, chooses again among the frames it reached (cutting `times` to
+/// those, and saying so in `warnings`) and decodes those if they differ.
+async fn decode_context(
+    path: &Path,
+    tools: &IntakeTools,
+    (width, height): (u32, u32),
+    times: &mut Vec<f64>,
+    options: &IntakeOptions,
+    limits: &Limits,
+    warnings: &mut Vec<String>,
+) -> Result<(Vec<usize>, Vec<RgbImage>), ServiceError> {
+    let chosen = select(times, options, limits)?;
+    let images = decode_frames(path, tools, width, height, &chosen).await?;
+    if images.len() == chosen.len() {
+        return Ok((chosen, images));
+    }
+    let plan = replan(times, &chosen, images.len(), options, limits)?;
+    warnings.push(format!(
+        "the second decoding pass ended before frame {} of the {} frames the first listed; the \
+         context frames were chosen again from the first {} frames",
+        chosen[images.len()],
+        times.len(),
+        plan.readable
+    ));
+    times.truncate(plan.readable);
+    if plan.reuses_decoded {
+        return Ok((plan.chosen, images));
+    }
+    let images = decode_frames(path, tools, width, height, &plan.chosen).await?;
+    if images.len() < plan.chosen.len() {
+        return Err(ends_before(plan.chosen[images.len()], None));
+    }
+    Ok((plan.chosen, images))
+}
+
+/// The context frames chosen again after a decode gave only the first `decoded` of `chosen`.
+#[derive(Debug, PartialEq)]
+struct Replan {
+    /// Source frames known to decode: every frame up to the last one that came out.
+    readable: usize,
+    /// The context frames among those.
+    chosen: Vec<usize>,
+    /// True when they are the frames already decoded (no further pass is needed).
+    reuses_decoded: bool,
+}
+
+/// Chooses the context frames again among the frames a short decode reached, with the same
+/// options; refuses the clip when the decode gave no frame at all.
+fn replan(
+    times: &[f64],
+    chosen: &[usize],
+    decoded: usize,
+    options: &IntakeOptions,
+    limits: &Limits,
+) -> Result<Replan, ServiceError> {
+    let Some(last) = decoded.checked_sub(1).and_then(|i| chosen.get(i)) else {
+        return Err(ends_before(chosen.first().copied().unwrap_or(0), None));
+    };
+    let readable = (last + 1).min(times.len());
+    let again = select(&times[..readable], options, limits)?;
+    Ok(Replan {
+        readable,
+        reuses_decoded: again.as_slice() == &chosen[..decoded],
+        chosen: again,
+    })
+}
+
+fn ends_before(frame: usize, detail_text: Option<&str>) -> ServiceError {
+    ServiceError::UnreadableMedia(format!(
+        "the video ends before its frame {frame} (truncated or corrupt?){}",
+        detail(detail_text)
+    ))
+}
+
+/// Decodes the video to RGB at `width` × `height` and gives the frames at `chosen` (increasing
+/// indices into the listing), or the first of them when the video ends early.
 async fn decode_frames(
     path: &Path,
     tools: &IntakeTools,
@@ -276,13 +568,19 @@ async fn decode_frames(
     chosen: &[usize],
 ) -> Result<Vec<RgbImage>, ServiceError> {
     // Only the chosen frames are converted to RGB and piped: `select` drops the rest right
-    // after decoding, and decoding stops after the last one.
+    // after decoding, and decoding stops after the last one. With `-reinit_filter 0` a size
+    // change mid-stream does not rebuild the graph (which would restart `n`); `scale` brings
+    // such frames to the first size.
     let select: Vec<String> = chosen.iter().map(|i| format!("eq(n\\,{i})")).collect();
     let mut child = Command::new(&tools.ffmpeg)
-        .args(["-v", "error", "-nostdin", "-threads", "2", "-i"])
+        .args(["-v", "error", "-nostdin", "-threads", DECODER_THREADS])
+        .args(["-reinit_filter", "0", "-i"])
         .arg(path)
-        .args(["-map", "0:v:0", "-vf"])
-        .arg(format!("select={}", select.join("+")))
+        .args(["-map", &format!("0:{VIDEO_STREAM}"), "-vf"])
+        .arg(format!(
+            "select={},scale={width}:{height}",
+            select.join("+")
+        ))
         .args(["-fps_mode", "passthrough", "-frames:v"])
         .arg(chosen.len().to_string())
         .args(["-f", "rawvideo", "-pix_fmt", "rgb24", "pipe:1"])
@@ -296,6 +594,8 @@ async fn decode_frames(
         .stdout
         .take()
         .ok_or_else(|| ServiceError::Internal("ffmpeg has no stdout".into()))?;
+    // Drained while the frames are read: a full stderr pipe would stall FFmpeg.
+    let log = child.stderr.take().map(drain_log);
     let frame_bytes = width as usize * height as usize * 3;
     let mut buffer = vec![0u8; frame_bytes];
     let mut images = Vec::with_capacity(chosen.len());
@@ -310,21 +610,59 @@ async fn decode_frames(
         images.push(image);
     }
     drop(stdout);
-    let output = child
-        .wait_with_output()
+    child
+        .wait()
         .await
         .map_err(|e| ServiceError::Internal(format!("waiting for ffmpeg: {e}")))?;
-    if images.len() < chosen.len() {
-        return Err(ServiceError::UnreadableMedia(format!(
-            "the video ends before its frame {} (truncated or corrupt?){}",
-            chosen.get(images.len()).copied().unwrap_or(0),
-            match first_line(&output.stderr) {
-                s if s.is_empty() => String::new(),
-                s => format!(": {s}"),
-            }
-        )));
+    if images.is_empty() && !chosen.is_empty() {
+        let log = match log {
+            Some(log) => log.await.unwrap_or_default(),
+            None => Log::default(),
+        };
+        return Err(ends_before(chosen[0], log.first.as_deref()));
     }
     Ok(images)
+}
+
+/// What a child logged on stderr: how many lines, and the first, cleaned for the client.
+#[derive(Debug, Default, Clone, PartialEq)]
+struct Log {
+    count: usize,
+    first: Option<String>,
+}
+
+/// Reads a child's stderr to its end (so that the child never blocks on a full pipe), keeping
+/// the count of non-empty lines and the first.
+fn drain_log(stderr: impl AsyncRead + Unpin + Send + 'static) -> tokio::task::JoinHandle<Log> {
+    tokio::spawn(async move {
+        let mut lines = BufReader::new(stderr).lines();
+        let mut log = Log::default();
+        while let Ok(Some(line)) = lines.next_line().await {
+            if line.trim().is_empty() {
+                continue;
+            }
+            log.count += 1;
+            if log.first.is_none() {
+                log.first = Some(clean_log_line(&line));
+            }
+        }
+        log
+    })
+}
+
+fn detail(text: Option<&str>) -> String {
+    match text {
+        Some(s) if !s.is_empty() => format!(": {s}"),
+        _ => String::new(),
+    }
+}
+
+fn plural(n: usize, noun: &str) -> String {
+    if n == 1 {
+        format!("1 {noun}")
+    } else {
+        format!("{n} {noun}s")
+    }
 }
 
 fn tool_missing(tool: &Path, e: std::io::Error) -> ServiceError {
@@ -336,14 +674,29 @@ fn tool_missing(tool: &Path, e: std::io::Error) -> ServiceError {
 
 fn first_line(stderr: &[u8]) -> String {
     let text = String::from_utf8_lossy(stderr);
-    let line = text.lines().find(|l| !l.trim().is_empty()).unwrap_or("");
-    // The scratch file's path means nothing to the client.
-    line.split_once(": ")
+    clean_log_line(text.lines().find(|l| !l.trim().is_empty()).unwrap_or(""))
+}
+
+/// An FFmpeg log line as the client sees it: without the scratch file's path (which means
+/// nothing to the client) or the component's memory address (`[h264 @ 0x55d1…] x` → `h264: x`),
+/// at most 300 characters.
+fn clean_log_line(line: &str) -> String {
+    let line = line.trim();
+    let line = line
+        .split_once(": ")
         .filter(|(head, _)| head.contains('/'))
-        .map_or(line, |(_, tail)| tail)
-        .chars()
-        .take(300)
-        .collect()
+        .map_or(line, |(_, tail)| tail);
+    let line = match line
+        .strip_prefix('[')
+        .and_then(|rest| rest.split_once("] "))
+        .and_then(|(tag, tail)| Some((tag.split_once(" @ ")?.0, tail)))
+    {
+        // A parser without a codec context logs as NULL.
+        Some(("NULL", tail)) => tail.to_owned(),
+        Some((component, tail)) => format!("{component}: {tail}"),
+        None => line.to_owned(),
+    };
+    line.chars().take(300).collect()
 }
 
 #[cfg(test)]
@@ -366,5 +719,170 @@ mod tests {
         for (a, b) in t.iter().zip(expected) {
             assert!((a - b).abs() < 1e-9, "{t:?}");
         }
+    }
+
+    #[test]
+    fn a_timestamp_that_jumps_back_keeps_the_display_order() {
+        // Two concatenated streams whose timestamps overlap: frames stay in the order they were
+        // shown, each after its predecessor.
+        let raw = [Some(2.0), Some(2.1), Some(2.2), Some(2.1), Some(2.2)];
+        // Microseconds, without the float noise of 2.1 - 2.0.
+        assert_eq!(monotonic_times(&raw), [0.0, 0.1, 0.2, 0.3, 0.4]);
+    }
+
+    #[test]
+    fn listing_lines_parse_into_packets_and_frames() {
+        assert_eq!(
+            parse_entry("packet|flags=K_"),
+            Some(Entry::Packet { discard: false })
+        );
+        assert_eq!(
+            parse_entry("packet|flags=_D"),
+            Some(Entry::Packet { discard: true })
+        );
+        let frame = |time, width, height| {
+            Some(Entry::Frame(ListedFrame {
+                time,
+                width,
+                height,
+            }))
+        };
+        assert_eq!(
+            parse_entry("frame|best_effort_timestamp_time=0.050000|width=368|height=480"),
+            frame(Some(0.05), 368, 480)
+        );
+        // Side data opens a nested section whose fields are not the frame's.
+        assert_eq!(
+            parse_entry(
+                "frame|best_effort_timestamp_time=N/A|width=64|height=48|side_data|width=1\r"
+            ),
+            frame(None, 64, 48)
+        );
+        assert_eq!(parse_entry("frame|best_effort_timestamp_time=1.0"), None);
+        assert_eq!(parse_entry("side_data|"), None);
+        assert_eq!(parse_entry(""), None);
+    }
+
+    fn frame(time: f64, width: u32, height: u32) -> ListedFrame {
+        ListedFrame {
+            time: Some(time),
+            width,
+            height,
+        }
+    }
+
+    #[test]
+    fn a_listing_warns_of_decode_errors_and_of_a_size_change_only() {
+        let mut clean = Listing::default();
+        for i in 0..3 {
+            clean.push(frame(f64::from(i) / 10.0, 64, 48));
+        }
+        // Nothing logged and the size holds: nothing to say, whatever the container declares.
+        clean.packets = 3;
+        assert!(clean.warnings(&[0.0, 0.1, 0.2], Some(13)).is_empty());
+
+        let mut damaged = Listing {
+            packets: 4,
+            log: Log {
+                count: 2,
+                first: Some("mjpeg: huffman table decode error".into()),
+            },
+            ..Listing::default()
+        };
+        for (t, w) in [(1.0, 64), (1.1, 64), (1.3, 80)] {
+            damaged.push(frame(t, w, 48));
+        }
+        assert_eq!(
+            damaged.size_change,
+            Some(SizeChange {
+                index: 2,
+                width: 80,
+                height: 48
+            })
+        );
+        let warnings = damaged.warnings(&[0.0, 0.1, 0.3], Some(4));
+        assert_eq!(warnings.len(), 2, "{warnings:?}");
+        assert!(
+            warnings[0].contains("2 errors")
+                && warnings[0].contains("huffman table decode error")
+                && warnings[0].contains("1 packet decoded to no frame")
+                && warnings[0].contains("the 3 frames that decoded (the container lists 4)"),
+            "{warnings:?}"
+        );
+        assert!(
+            warnings[1].contains("from 64x48 to 80x48 at frame 2 (0.300 s)"),
+            "{warnings:?}"
+        );
+    }
+
+    #[test]
+    fn the_frame_rate_is_measured_and_the_declared_one_kept_only_where_it_agrees() {
+        let at_30: Vec<f64> = (0..200)
+            .map(|i| (f64::from(i) / 30.0 * 1e6).round() / 1e6)
+            .collect();
+        assert_eq!(frame_rate(&at_30, Some(30.0)), 30.0);
+        let measured = frame_rate(&at_30, None);
+        assert!((measured - 30.0).abs() < 1e-5, "{measured}");
+        // Variable rate: the container's average (nb_frames / duration) is not what decodes.
+        let vfr = [0.0, 0.1, 0.3, 0.6, 1.0];
+        assert_eq!(frame_rate(&vfr, Some(9.42)), 4.0);
+        // One frame measures nothing.
+        assert_eq!(frame_rate(&[0.0], Some(25.0)), 25.0);
+        assert_eq!(frame_rate(&[0.0], None), 0.0);
+    }
+
+    #[test]
+    fn a_short_decode_replans_over_the_frames_it_reached() {
+        let limits = Limits::default();
+        let times: Vec<f64> = (0..10).map(|i| f64::from(i) / 10.0).collect();
+        let spread = IntakeOptions {
+            max_frames: Some(4),
+            ..Default::default()
+        };
+        // [0, 3, 6, 9] planned, two came out: frames 0..=3 are known to decode.
+        let plan = replan(&times, &[0, 3, 6, 9], 2, &spread, &limits).unwrap();
+        assert_eq!(
+            plan,
+            Replan {
+                readable: 4,
+                chosen: vec![0, 1, 2, 3],
+                reuses_decoded: false
+            }
+        );
+        // A stride picks the same frames again: what was decoded is kept.
+        let stride = IntakeOptions {
+            stride: Some(3),
+            ..Default::default()
+        };
+        let plan = replan(&times, &[0, 3, 6, 9], 3, &stride, &limits).unwrap();
+        assert_eq!(
+            plan,
+            Replan {
+                readable: 7,
+                chosen: vec![0, 3, 6],
+                reuses_decoded: true
+            }
+        );
+        // Nothing came out: refused, naming the frame.
+        let none = replan(&times, &[2, 5], 0, &spread, &limits).unwrap_err();
+        assert!(none.to_string().contains("before its frame 2"), "{none}");
+    }
+
+    #[test]
+    fn log_lines_lose_paths_and_addresses() {
+        assert_eq!(
+            clean_log_line("[mjpeg @ 0x55e092f6dc00] huffman table decode error"),
+            "mjpeg: huffman table decode error"
+        );
+        assert_eq!(
+            clean_log_line("/tmp/scratch/.tmpAb12: Invalid data found when processing input"),
+            "Invalid data found when processing input"
+        );
+        assert_eq!(
+            clean_log_line("[NULL @ 0x5564ef5fdbb40] Invalid NAL unit size (0 > 8)."),
+            "Invalid NAL unit size (0 > 8)."
+        );
+        assert_eq!(clean_log_line("plain words"), "plain words");
+        assert_eq!(clean_log_line(&"x".repeat(400)).len(), 300);
     }
 }
