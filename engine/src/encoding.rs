@@ -6,6 +6,17 @@
 //! caller's list, so that per-frame inputs given later in the caller's order (2D feature maps for
 //! lifting) can be matched to the encoded frames. It also carries, when the caller knows it, the
 //! source's frame step: the time policy's floor near the first frame (see [`crate::time`]).
+//!
+//! For a package in the precomputed decoder form it also keeps the context projection (the first
+//! decoder layer's projection of the features, which no target changes): [`Engine::encode`]
+//! computes it, and an encoding rebuilt from its parts gets it on its first decode. It is derived
+//! from the features by one package's weights, so it remembers which engine made it, and an
+//! encoding compares equal to another with the same parts whether or not either holds one.
+//!
+//! [`Engine::encode`]: crate::Engine::encode
+
+use std::borrow::Cow;
+use std::sync::OnceLock;
 
 use crate::time::check_frame_step;
 use crate::{EngineError, Result};
@@ -28,13 +39,42 @@ impl ContextFrame {
 }
 
 /// The encoder's output for a set of context frames, with what decoding needs to know about them.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct Encoding {
     times: Vec<f64>,
     frame_order: Vec<usize>,
     features: Vec<f32>,
     shape: [usize; 3],
     frame_step: Option<f64>,
+    context_projection: OnceLock<ContextProjection>,
+}
+
+/// The first decoder layer's projection of an encoding's features, `[T, P, 3C]`, and the engine
+/// whose package's weights made it.
+#[derive(Clone)]
+struct ContextProjection {
+    engine: u64,
+    values: Vec<f32>,
+}
+
+impl std::fmt::Debug for ContextProjection {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ContextProjection")
+            .field("engine", &self.engine)
+            .field("values", &self.values.len())
+            .finish()
+    }
+}
+
+/// Equal parts make equal encodings: a context projection is derived from them.
+impl PartialEq for Encoding {
+    fn eq(&self, other: &Self) -> bool {
+        self.times == other.times
+            && self.frame_order == other.frame_order
+            && self.features == other.features
+            && self.shape == other.shape
+            && self.frame_step == other.frame_step
+    }
 }
 
 impl Encoding {
@@ -95,6 +135,7 @@ impl Encoding {
             features,
             shape,
             frame_step: None,
+            context_projection: OnceLock::new(),
         })
     }
 
@@ -143,8 +184,47 @@ impl Encoding {
         (self.times[0], self.times[self.times.len() - 1])
     }
 
+    /// The context projection `[T, P, 3C]`, once an engine of a package in the precomputed decoder
+    /// form has encoded or decoded this encoding (see the module documentation).
+    pub fn context_projection(&self) -> Option<&[f32]> {
+        self.context_projection.get().map(|p| p.values.as_slice())
+    }
+
+    /// Bytes this encoding holds: its features and, once computed, its context projection
+    /// (three times the features' size), plus its times. What a cache of encodings should count.
+    pub fn memory_bytes(&self) -> usize {
+        let projection = self.context_projection().map_or(0, <[f32]>::len);
+        (self.features.len() + projection) * std::mem::size_of::<f32>()
+            + self.times.len() * std::mem::size_of::<f64>()
+            + self.frame_order.len() * std::mem::size_of::<usize>()
+    }
+
+    /// The context projection made by `engine`, if this encoding holds that one.
+    pub(crate) fn context_projection_by(&self, engine: u64) -> Option<&[f32]> {
+        self.context_projection
+            .get()
+            .filter(|p| p.engine == engine)
+            .map(|p| p.values.as_slice())
+    }
+
+    /// Keeps `values`, `engine`'s context projection of these features, unless the encoding already
+    /// holds one, and returns `engine`'s projection: the one kept (an engine makes the same one
+    /// twice), or `values` themselves when the encoding holds another engine's.
+    pub(crate) fn keep_context_projection(&self, engine: u64, values: Vec<f32>) -> Cow<'_, [f32]> {
+        let mut values = Some(values);
+        let kept = self.context_projection.get_or_init(|| ContextProjection {
+            engine,
+            values: values.take().unwrap_or_default(),
+        });
+        if kept.engine == engine {
+            Cow::Borrowed(&kept.values)
+        } else {
+            Cow::Owned(values.unwrap_or_default())
+        }
+    }
+
     /// Takes the encoding apart into `(times, frame_order, features, shape)` (the frame step,
-    /// [`frame_step`](Self::frame_step), is not among them).
+    /// [`frame_step`](Self::frame_step), and the context projection are not among them).
     pub fn into_parts(self) -> (Vec<f64>, Vec<usize>, Vec<f32>, [usize; 3]) {
         (self.times, self.frame_order, self.features, self.shape)
     }
@@ -227,6 +307,36 @@ mod tests {
             let err = e().unwrap().with_frame_step(Some(bad)).unwrap_err();
             assert!(matches!(err, EngineError::InvalidInput(_)), "{err}");
         }
+    }
+
+    #[test]
+    fn a_context_projection_is_kept_once_and_only_read_back_by_its_engine() {
+        let e = Encoding::from_parts(vec![0.0], vec![0], vec![1.0; 3 * 4], [1, 3, 4]).unwrap();
+        let bare = e.clone();
+        assert_eq!(e.context_projection(), None);
+        assert_eq!(e.memory_bytes(), 12 * 4 + 8 + std::mem::size_of::<usize>());
+        assert!(matches!(
+            e.keep_context_projection(7, vec![2.0; 36]),
+            Cow::Borrowed(v) if v == [2.0; 36]
+        ));
+        assert!(matches!(
+            e.keep_context_projection(7, vec![3.0; 36]),
+            Cow::Borrowed(v) if v == [2.0; 36]
+        ));
+        assert!(matches!(
+            e.keep_context_projection(8, vec![4.0; 36]),
+            Cow::Owned(v) if v == [4.0; 36]
+        ));
+        assert_eq!(e.context_projection(), Some(&[2.0; 36][..]));
+        assert_eq!(e.context_projection_by(7), Some(&[2.0; 36][..]));
+        assert_eq!(e.context_projection_by(8), None);
+        assert_eq!(e.memory_bytes(), 48 * 4 + 8 + std::mem::size_of::<usize>());
+        assert_eq!(
+            e, bare,
+            "a projection is derived data, not part of what an encoding is"
+        );
+        let stepped = e.with_frame_step(Some(0.5)).unwrap();
+        assert_eq!(stepped.context_projection_by(7).map(<[f32]>::len), Some(36));
     }
 
     #[test]

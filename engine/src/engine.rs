@@ -7,34 +7,46 @@
 //! ONNX Runtime, and every output against the contract after, so a caller sees a clear error
 //! rather than a runtime shape failure or a silently wrong scene.
 //!
+//! A package in the precomputed decoder form also has a context projection graph: `encode` runs
+//! it once per clip and the encoding keeps its result, which every decode of the clip feeds the
+//! decoder (an encoding rebuilt from its parts gets it on its first decode).
+//!
 //! Each graph is a `c4g_runtime::Graph`, its session behind a mutex (`ort` 2.0 runs sessions
 //! through `&mut`): the engine is `Send + Sync` and calls on one graph are serialised (ONNX
 //! Runtime already uses every core inside one run; more throughput means more engines or a GPU).
 
+use std::borrow::Cow;
 use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use c4g_renderer::{FeatureBlock, GaussianSet};
-use c4g_runtime::{Graph, RuntimeError, create_session};
+use c4g_runtime::{Graph, RunOutputs, RuntimeError, create_session};
 use image::RgbImage;
 use ort::value::TensorRef;
 
 use crate::encoding::{ContextFrame, Encoding, encoding_order};
 use crate::error::ShapeDim::{Fixed, Free};
-use crate::graph::{Contract, GAUSSIAN_CHANNELS};
+use crate::graph::{Contract, GAUSSIAN_CHANNELS, context_projection_width};
 use crate::options::EngineOptions;
-use crate::package::{AttentionKind, Manifest, Package};
+use crate::package::{AttentionKind, DecoderForm, Manifest, Package};
 use crate::time::{NormalizedTimes, TimePolicy};
 use crate::{EngineError, Result, preprocess};
 
 /// Heads assumed when a package does not declare `architecture.decoder_heads` (C4G's own count).
 const DEFAULT_DECODER_HEADS: usize = 16;
 
+/// Identifies an engine to the context projections it leaves in encodings (they depend on its
+/// package's weights); unique within the process.
+static NEXT_ENGINE_ID: AtomicU64 = AtomicU64::new(0);
+
 /// A loaded model package, ready to encode clips and decode Gaussian sets.
 pub struct Engine {
+    id: u64,
     package: Package,
     options: EngineOptions,
     time_policy: TimePolicy,
     encoder: Graph,
+    context_projection: Option<Graph>,
     decoder: Graph,
     feature_decoder: Option<Graph>,
 }
@@ -45,6 +57,7 @@ impl std::fmt::Debug for Engine {
             .field("package", &self.package.dir())
             .field("options", &self.options)
             .field("time_policy", &self.time_policy)
+            .field("context_projection", &self.context_projection.is_some())
             .field("feature_decoder", &self.feature_decoder.is_some())
             .finish()
     }
@@ -70,6 +83,14 @@ impl Engine {
             Ok(Graph::new(name, session))
         };
         let encoder = load("encoder", &package.encoder_path(), Contract::encoder(m))?;
+        let context_projection = match (m.decoder_form, package.context_projection_path()) {
+            (DecoderForm::Precomputed, Some(path)) => Some(load(
+                "context projection",
+                &path,
+                Contract::context_projection(m),
+            )?),
+            _ => None,
+        };
         let decoder = load("decoder", &package.decoder_path(), Contract::decoder(m))?;
         let feature_decoder = match (package.feature_decoder_path(), m.feature_decoder_width()) {
             (Some(path), Some(width)) => Some(load(
@@ -83,10 +104,12 @@ impl Engine {
             .time_policy
             .unwrap_or_else(|| m.declared_time_policy());
         Ok(Self {
+            id: NEXT_ENGINE_ID.fetch_add(1, Ordering::Relaxed),
             package,
             options,
             time_policy,
             encoder,
+            context_projection,
             decoder,
             feature_decoder,
         })
@@ -125,7 +148,8 @@ impl Engine {
     /// Encodes context frames into an [`Encoding`].
     ///
     /// Frames are encoded in time order (ties by pixel content), whatever order they come in; the
-    /// encoding remembers where each came from.
+    /// encoding remembers where each came from. For a package in the precomputed decoder form the
+    /// encoding also holds the context projection.
     pub fn encode(&self, frames: &[ContextFrame]) -> Result<Encoding> {
         self.check_frames(frames)?;
         let order = encoding_order(frames);
@@ -148,7 +172,10 @@ impl Engine {
                 Ok(outputs.f32("features", &[t, p, c])?.to_vec())
             })?;
         let times = order.iter().map(|&i| frames[i].time).collect();
-        Encoding::from_parts(times, order, features, [t, p, c])
+        let encoding = Encoding::from_parts(times, order, features, [t, p, c])?;
+        // Made now and kept in the encoding, for every decode of this clip.
+        self.context_projection(&encoding)?;
+        Ok(encoding)
     }
 
     /// Decodes the Gaussians at each target time, normalising times with the engine's policy
@@ -167,10 +194,12 @@ impl Engine {
         times: &[NormalizedTimes],
     ) -> Result<Vec<GaussianSet>> {
         self.check_encoding(encoding, times)?;
+        let projection = self.context_projection(encoding)?;
         let batch = self.decode_batch_size(encoding.frame_count());
         let mut sets = Vec::with_capacity(times.len());
         for chunk in times.chunks(batch) {
-            sets.extend(self.decode_chunk(encoding, chunk, None)?);
+            let inputs = DecoderInputs::new(encoding, projection.as_deref(), chunk);
+            sets.extend(self.decode_chunk(&inputs, None)?);
         }
         Ok(sets)
     }
@@ -205,10 +234,12 @@ impl Engine {
         let width = self.feature_width()?;
         self.check_encoding(encoding, times)?;
         let maps = self.encoded_order_maps(encoding, context_feature_maps, width)?;
+        let projection = self.context_projection(encoding)?;
         let batch = self.decode_batch_size(encoding.frame_count());
         let mut sets = Vec::with_capacity(times.len());
         for chunk in times.chunks(batch) {
-            sets.extend(self.decode_chunk(encoding, chunk, Some((&maps, width)))?);
+            let inputs = DecoderInputs::new(encoding, projection.as_deref(), chunk);
+            sets.extend(self.decode_chunk(&inputs, Some((&maps, width)))?);
         }
         Ok(sets)
     }
@@ -219,7 +250,11 @@ impl Engine {
     /// The estimate per target: with plain attention the score matrices dominate,
     /// 2 · heads · L² floats (two layers' worth live at once); with fused attention only
     /// activations remain, about 8 · C · L floats (q, k, v, attention output, residual and the
-    /// MLP's hidden rows), L = T·P + N tokens of width C.
+    /// MLP's hidden rows), L = T·P + N tokens of width C. The precomputed decoder form holds no
+    /// more per target (its first layer's q, k and v are assembled from the context projection
+    /// instead of multiplied out; the projection is the encoding's, not the run's): measured at the
+    /// official size with T = 16 and fused attention, a run's peak working set is about 430 MiB a
+    /// target precomputed and 480 MiB plain, against this estimate's 384 MiB.
     pub fn decode_batch_size(&self, frames: usize) -> usize {
         let max = self.options.max_batch.max(1);
         if self.options.decoder_memory_budget == 0 {
@@ -338,18 +373,36 @@ impl Engine {
         Ok(ordered)
     }
 
+    /// The context projection `encoding`'s decodes feed the decoder: `None` for a plain package;
+    /// else the one the encoding holds from this engine, or one computed now (and kept in the
+    /// encoding, unless it already holds another engine's).
+    fn context_projection<'e>(&self, encoding: &'e Encoding) -> Result<Option<Cow<'e, [f32]>>> {
+        let Some(graph) = &self.context_projection else {
+            return Ok(None);
+        };
+        if let Some(values) = encoding.context_projection_by(self.id) {
+            return Ok(Some(Cow::Borrowed(values)));
+        }
+        let [t, p, c] = encoding.shape();
+        let input = TensorRef::from_array_view(([t, p, c], encoding.features()))
+            .map_err(RuntimeError::ort("preparing the features tensor"))?;
+        let shape = [t, p, context_projection_width(self.manifest())];
+        let values = graph.run(ort::inputs!["features" => input], |outputs| {
+            Ok(outputs.f32("context_projection", &shape)?.to_vec())
+        })?;
+        Ok(Some(encoding.keep_context_projection(self.id, values)))
+    }
+
     /// One decoder run (and one feature-decoder run when `maps` is given) for one batch of
     /// targets.
     fn decode_chunk(
         &self,
-        encoding: &Encoding,
-        times: &[NormalizedTimes],
+        inputs: &DecoderInputs<'_>,
         maps: Option<(&[f32], usize)>,
     ) -> Result<Vec<GaussianSet>> {
-        let inputs = DecoderInputs::new(encoding, times);
-        let gaussians = self.run_decoder(&inputs)?;
+        let gaussians = self.run_decoder(inputs)?;
         let lifted = match maps {
-            Some((maps, width)) => Some((self.run_feature_decoder(&inputs, maps, width)?, width)),
+            Some((maps, width)) => Some((self.run_feature_decoder(inputs, maps, width)?, width)),
             None => None,
         };
         let n = self.manifest().gaussian_count;
@@ -381,14 +434,27 @@ impl Engine {
             self.manifest().gaussian_count,
             GAUSSIAN_CHANNELS,
         ];
-        let inputs = ort::inputs![
-            "features" => features,
-            "context_times" => context_times,
-            "target_times" => target_times,
-        ];
-        Ok(self.decoder.run(inputs, |outputs| {
-            Ok(outputs.f32("gaussians", &shape)?.to_vec())
-        })?)
+        let read = |outputs: &RunOutputs<'_, '_>| Ok(outputs.f32("gaussians", &shape)?.to_vec());
+        let gaussians = match inputs.context_projection_tensor(self.manifest())? {
+            Some(projection) => self.decoder.run(
+                ort::inputs![
+                    "features" => features,
+                    "context_projection" => projection,
+                    "context_times" => context_times,
+                    "target_times" => target_times,
+                ],
+                read,
+            ),
+            None => self.decoder.run(
+                ort::inputs![
+                    "features" => features,
+                    "context_times" => context_times,
+                    "target_times" => target_times,
+                ],
+                read,
+            ),
+        };
+        Ok(gaussians?)
     }
 
     /// `gaussian_features` [B, N, F] for one batch; `maps` is `[T, P, F]` in encoded order.
@@ -421,9 +487,11 @@ impl Engine {
 }
 
 /// What every decoder graph takes for one batch of targets: the encoding's features and each
-/// target's normalised times, flattened to `[B, T]` and `[B]`.
+/// target's normalised times, flattened to `[B, T]` and `[B]`; and, for the Gaussian decoder of a
+/// precomputed-form package, the context projection.
 struct DecoderInputs<'a> {
     features: &'a [f32],
+    context_projection: Option<&'a [f32]>,
     shape: [usize; 3],
     batch: usize,
     context: Vec<f32>,
@@ -431,9 +499,14 @@ struct DecoderInputs<'a> {
 }
 
 impl<'a> DecoderInputs<'a> {
-    fn new(encoding: &'a Encoding, times: &[NormalizedTimes]) -> Self {
+    fn new(
+        encoding: &'a Encoding,
+        context_projection: Option<&'a [f32]>,
+        times: &[NormalizedTimes],
+    ) -> Self {
         Self {
             features: encoding.features(),
+            context_projection,
             shape: encoding.shape(),
             batch: times.len(),
             context: times
@@ -454,6 +527,17 @@ impl<'a> DecoderInputs<'a> {
                 .map_err(prepare())?,
             TensorRef::from_array_view(([self.batch], self.target.as_slice())).map_err(prepare())?,
         ))
+    }
+
+    /// A borrowed tensor of the context projection `[T, P, 3C]`, when there is one.
+    fn context_projection_tensor(&self, m: &Manifest) -> Result<Option<TensorRef<'_, f32>>> {
+        let Some(values) = self.context_projection else {
+            return Ok(None);
+        };
+        let [t, p, _] = self.shape;
+        let tensor = TensorRef::from_array_view(([t, p, context_projection_width(m)], values))
+            .map_err(RuntimeError::ort("preparing the context projection"))?;
+        Ok(Some(tensor))
     }
 }
 

@@ -10,7 +10,7 @@ use ort::session::Session;
 use ort::value::{Outlet, TensorElementType};
 
 use crate::error::{ShapeDim, format_dims};
-use crate::package::Manifest;
+use crate::package::{DecoderForm, Manifest};
 use crate::{EngineError, Result};
 
 /// Floats per Gaussian in the decoder's output.
@@ -55,12 +55,28 @@ impl Contract {
         }
     }
 
-    /// `decoder.onnx`: features, context_times [B, T], target_times [B] → gaussians [B, N, 14].
+    /// `context_projection.onnx` (the precomputed decoder form): features [T, P, C] →
+    /// context_projection [T, P, 3C].
+    pub(crate) fn context_projection(m: &Manifest) -> Self {
+        Self {
+            graph: "context_projection",
+            precision: m.precision.clone(),
+            inputs: vec![features(m)],
+            outputs: vec![context_projection(m)],
+        }
+    }
+
+    /// `decoder.onnx`: features (and, in the precomputed form, context_projection [T, P, 3C]),
+    /// context_times [B, T], target_times [B] → gaussians [B, N, 14].
     pub(crate) fn decoder(m: &Manifest) -> Self {
+        let mut inputs = decoder_inputs(m);
+        if m.decoder_form == DecoderForm::Precomputed {
+            inputs.push(context_projection(m));
+        }
         Self {
             graph: "decoder",
             precision: m.precision.clone(),
-            inputs: decoder_inputs(m),
+            inputs,
             outputs: vec![port(
                 "gaussians",
                 vec![Free("B"), Fixed(m.gaussian_count), Fixed(GAUSSIAN_CHANNELS)],
@@ -137,6 +153,23 @@ fn features(m: &Manifest) -> Port {
     port(
         "features",
         vec![Free("T"), Fixed(m.tokens_per_frame), Fixed(m.feature_width)],
+    )
+}
+
+/// Floats per token of the context projection: the first decoder layer's q, k and v, each as wide
+/// as the features (C4G's decoder has heads × head width = C).
+pub(crate) fn context_projection_width(m: &Manifest) -> usize {
+    3 * m.feature_width
+}
+
+fn context_projection(m: &Manifest) -> Port {
+    port(
+        "context_projection",
+        vec![
+            Free("T"),
+            Fixed(m.tokens_per_frame),
+            Fixed(context_projection_width(m)),
+        ],
     )
 }
 

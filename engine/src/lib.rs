@@ -5,7 +5,9 @@
 //! [`GaussianSet`](c4g_renderer::GaussianSet)), with timestamps normalised by a [`TimePolicy`].
 //! A package with a feature decoder also lifts 2D feature maps onto the Gaussians
 //! ([`Engine::decode_features`]). Many times decode cheaper through [`keyframes`]: exact sets at a
-//! few keyframes, interpolated per Gaussian in between ([`Engine::decode_keyframed`]).
+//! few keyframes, interpolated per Gaussian in between ([`Engine::decode_keyframed`]). A package
+//! in the precomputed decoder form ([`package::DecoderForm`]) also projects the features once per
+//! encoding, which every decode of it reuses.
 //!
 //! | module | holds |
 //! |---|---|

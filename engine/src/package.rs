@@ -62,8 +62,11 @@ pub struct RasterizerSpec {
 pub struct PackageFiles {
     /// frames → features.
     pub encoder: String,
-    /// features + times → Gaussians.
+    /// features + times → Gaussians (in the precomputed decoder form, the context projection too).
     pub decoder: String,
+    /// features → the context projection, in the precomputed decoder form (see [`DecoderForm`]).
+    #[serde(default)]
+    pub context_projection: Option<String>,
     /// features + times + feature maps → per-Gaussian features, when the package lifts features.
     #[serde(default)]
     pub feature_decoder: Option<String>,
@@ -104,6 +107,9 @@ pub struct Manifest {
     /// How the graphs compute attention; decides how decoder memory grows with tokens.
     #[serde(default)]
     pub attention: AttentionKind,
+    /// Whether the decoder takes the context projection, computed once per clip; absent: plain.
+    #[serde(default)]
+    pub decoder_form: DecoderForm,
     /// The time policy the weights were trained with (`"frame-step"`, `"stable"`,
     /// `"reference"`); absent: frame-step, right for the official weights (see
     /// [`declared_time_policy`](Self::declared_time_policy)).
@@ -167,6 +173,22 @@ pub enum AttentionKind {
     Fused,
 }
 
+/// How a package's decoder gets its first layer's qkv projection of the context features
+/// (`model.json` key `decoder_form`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DecoderForm {
+    /// `decoder.onnx` takes the features and the times, and projects every token for every
+    /// target. Packages that do not say are plain.
+    #[default]
+    Plain,
+    /// `context_projection.onnx` projects the context features once per clip (the projection of
+    /// the centred features by the first layer's weights, which depends on no time); `decoder.onnx`
+    /// takes that as an input and adds only what the time embeddings change. The same Gaussians
+    /// up to float rounding, without the first layer's projection in the per-target cost.
+    Precomputed,
+}
+
 /// A validated model package on disk.
 #[derive(Debug, Clone)]
 pub struct Package {
@@ -208,6 +230,15 @@ impl Package {
     /// Path of `decoder.onnx`.
     pub fn decoder_path(&self) -> PathBuf {
         self.dir.join(&self.manifest.files.decoder)
+    }
+
+    /// Path of `context_projection.onnx`, when the package is in the precomputed decoder form.
+    pub fn context_projection_path(&self) -> Option<PathBuf> {
+        self.manifest
+            .files
+            .context_projection
+            .as_ref()
+            .map(|f| self.dir.join(f))
     }
 
     /// Path of `feature_decoder.onnx`, when the package has one.
@@ -301,6 +332,19 @@ impl Package {
         if m.feature_width == 0 || m.gaussian_count == 0 {
             return Err(self.invalid("feature_width and gaussian_count must be positive"));
         }
+        match (m.decoder_form, &m.files.context_projection) {
+            (DecoderForm::Precomputed, None) => {
+                return Err(self.invalid(
+                    "decoder_form is \"precomputed\" but files.context_projection is missing",
+                ));
+            }
+            (DecoderForm::Plain, Some(_)) => {
+                return Err(self.invalid(
+                    "files.context_projection is given but decoder_form is not \"precomputed\"",
+                ));
+            }
+            _ => {}
+        }
         match (&m.files.feature_decoder, &m.feature_decoder) {
             (Some(_), Some(spec)) if spec.feature_width == 0 => {
                 Err(self.invalid("feature_decoder.feature_width must be positive"))
@@ -320,6 +364,7 @@ impl Package {
         let declared = [
             ("encoder", Some(&files.encoder)),
             ("decoder", Some(&files.decoder)),
+            ("context_projection", files.context_projection.as_ref()),
             ("feature_decoder", files.feature_decoder.as_ref()),
         ];
         for (role, file) in declared {
@@ -511,6 +556,54 @@ mod tests {
         );
         let err = declared("unknown", Some(json!({"footprint": "gsplat"}))).unwrap_err();
         assert!(matches!(err, EngineError::Manifest { .. }), "{err}");
+    }
+
+    #[test]
+    fn a_package_declares_its_decoder_form_and_the_precomputed_form_needs_its_projection_graph() {
+        let plain = open_with("form-absent", |_| {}, &ALL_FILES).unwrap();
+        assert_eq!(plain.manifest().decoder_form, DecoderForm::Plain);
+        assert_eq!(plain.context_projection_path(), None);
+        let precomputed = |m: &mut Value| {
+            m["decoder_form"] = json!("precomputed");
+            m["files"]["context_projection"] = json!("context_projection.onnx");
+        };
+        let mut files = ALL_FILES.to_vec();
+        files.push("context_projection.onnx");
+        let package = open_with("form-precomputed", precomputed, &files).unwrap();
+        assert_eq!(package.manifest().decoder_form, DecoderForm::Precomputed);
+        assert!(
+            package
+                .context_projection_path()
+                .unwrap()
+                .ends_with("context_projection.onnx")
+        );
+        let missing_file = reason(open_with("form-no-file", precomputed, &ALL_FILES));
+        assert!(
+            missing_file.contains("context_projection.onnx"),
+            "{missing_file}"
+        );
+        let undeclared = reason(open_with(
+            "form-no-graph",
+            |m| m["decoder_form"] = json!("precomputed"),
+            &files,
+        ));
+        assert!(
+            undeclared.contains("files.context_projection is missing"),
+            "{undeclared}"
+        );
+        let stray = reason(open_with(
+            "form-stray-graph",
+            |m| m["files"]["context_projection"] = json!("context_projection.onnx"),
+            &files,
+        ));
+        assert!(stray.contains("decoder_form"), "{stray}");
+        let unknown = open_with(
+            "form-unknown",
+            |m| m["decoder_form"] = json!("cached"),
+            &ALL_FILES,
+        )
+        .unwrap_err();
+        assert!(matches!(unknown, EngineError::Manifest { .. }), "{unknown}");
     }
 
     #[test]

@@ -84,4 +84,43 @@ mod tests {
         headers.insert("x-api-key", "s3cret".parse().unwrap());
         assert!(key.admits(&headers));
     }
+
+    #[test]
+    fn the_key_is_kept_only_as_its_digest_and_compared_whole_at_every_length() {
+        let secret = "a-long-secret-0123456789abcdef";
+        let key = ApiKey::new(secret);
+        // What the server holds and could ever print: 32 bytes of SHA-256, no part of the key.
+        assert_eq!(
+            key.digest,
+            <[u8; 32]>::from(Sha256::digest(secret.as_bytes()))
+        );
+        assert_eq!(format!("{key:?}"), "ApiKey(..)");
+        // Digests of equal length are compared in full (`subtle`), so neither a shared prefix nor
+        // the presented key's length decides how soon the comparison ends.
+        for n in 0..secret.len() {
+            assert!(!key.matches(&secret[..n]), "prefix of {n} bytes");
+        }
+        for longer in [format!("{secret}0"), format!("{secret}{secret}")] {
+            assert!(!key.matches(&longer));
+        }
+        assert!(!key.matches(&secret.to_uppercase()));
+        assert!(key.matches(secret));
+    }
+
+    #[test]
+    fn only_the_two_documented_headers_carry_a_key() {
+        let key = ApiKey::new("s3cret");
+        let with = |name: &'static str, value: &str| {
+            let mut headers = HeaderMap::new();
+            headers.insert(name, value.parse().unwrap());
+            key.admits(&headers)
+        };
+        assert!(with("authorization", "Bearer s3cret"));
+        assert!(!with("authorization", "bearer s3cret"));
+        assert!(!with("authorization", "Basic s3cret"));
+        assert!(!with("authorization", "s3cret"));
+        assert!(!with("cookie", "s3cret"));
+        assert!(!with("x-api-key", "Bearer s3cret"));
+        assert!(!key.admits(&HeaderMap::new()));
+    }
 }

@@ -93,6 +93,11 @@ pub struct Config {
     /// The old name of `--max-queued-work`; used when the new one is not set.
     #[arg(long, env = "C4G_MAX_QUEUED_JOBS", hide = true)]
     pub max_queued_jobs: Option<usize>,
+    /// Longest a request body (an upload, a worker's result) may take to arrive, in seconds,
+    /// from its request's headers on: a slower client is answered 408 (gRPC DEADLINE_EXCEEDED)
+    /// and its connection freed.
+    #[arg(long, env = "C4G_BODY_TIMEOUT_S", default_value_t = 300.0)]
+    pub body_timeout_s: f64,
     /// Time limit for reading media with FFmpeg and for one encode, in seconds.
     #[arg(long, env = "C4G_INTAKE_TIMEOUT_S", default_value_t = 120)]
     pub intake_timeout_s: u64,
@@ -124,6 +129,10 @@ pub struct Config {
     /// The FFmpeg binary (ffprobe is looked up beside it, or on PATH).
     #[arg(long, env = "C4G_FFMPEG", default_value = "ffmpeg")]
     pub ffmpeg: PathBuf,
+    /// For tests only: fault points (comma-separated) where the server stops until it is
+    /// killed (`server/src/faults.rs` lists them).
+    #[arg(long, env = "C4G_FAULT_PAUSE", hide = true, value_delimiter = ',')]
+    pub fault_pause: Vec<String>,
 }
 
 /// Decodes and renders that may wait for a work slot when no setting says.
@@ -229,6 +238,13 @@ impl Config {
             max_times: self.max_times.max(1),
             max_grpc_message_bytes: self.max_grpc_message_mib.saturating_mul(1 << 20),
         }
+    }
+
+    /// How long a request body may take to arrive (at least a millisecond).
+    pub fn body_timeout(&self) -> Duration {
+        Duration::try_from_secs_f64(self.body_timeout_s)
+            .unwrap_or(Duration::MAX)
+            .max(Duration::from_millis(1))
     }
 
     /// Work slots for decodes and renders (0: one per core), by the new name or the old.

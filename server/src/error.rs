@@ -26,6 +26,8 @@ pub fn http_status(kind: ServiceErrorKind) -> StatusCode {
         K::UnsupportedMedia => StatusCode::UNSUPPORTED_MEDIA_TYPE,
         K::UnreadableMedia | K::Unsupported => StatusCode::UNPROCESSABLE_ENTITY,
         K::Busy => StatusCode::TOO_MANY_REQUESTS,
+        K::InsufficientStorage => StatusCode::INSUFFICIENT_STORAGE,
+        K::TimedOut => StatusCode::REQUEST_TIMEOUT,
         K::Internal => StatusCode::INTERNAL_SERVER_ERROR,
     }
 }
@@ -40,16 +42,21 @@ pub fn grpc_code(kind: ServiceErrorKind) -> Code {
         }
         K::Unauthorized => Code::Unauthenticated,
         K::NotFound => Code::NotFound,
-        K::TooLarge | K::Busy => Code::ResourceExhausted,
+        K::TooLarge | K::Busy | K::InsufficientStorage => Code::ResourceExhausted,
+        K::TimedOut => Code::DeadlineExceeded,
         K::Internal => Code::Internal,
     }
 }
 
-/// Server failures are logged where they are answered; refusals for load are expected and are
-/// counted by the metrics instead.
+/// Server failures are logged where they are answered, and so is a full disk (the operator has
+/// to act); refusals for load are expected and are counted by the metrics instead.
 fn log(error: &ServiceError, kind: ServiceErrorKind) {
-    if kind == ServiceErrorKind::Internal {
-        tracing::error!(error = %error, "request failed");
+    match kind {
+        ServiceErrorKind::Internal => tracing::error!(error = %error, "request failed"),
+        ServiceErrorKind::InsufficientStorage => {
+            tracing::error!(error = %error, "request refused: the disk is full")
+        }
+        _ => {}
     }
 }
 
@@ -98,7 +105,7 @@ mod tests {
     use super::*;
 
     /// Every kind, its name, HTTP status and gRPC code: the contract `docs/api.md` documents.
-    const TABLE: [(ServiceErrorKind, &str, u16, Code); 11] = [
+    const TABLE: [(ServiceErrorKind, &str, u16, Code); 13] = [
         (
             ServiceErrorKind::NotReady,
             "not_ready",
@@ -149,6 +156,18 @@ mod tests {
             503,
             Code::Unavailable,
         ),
+        (
+            ServiceErrorKind::InsufficientStorage,
+            "insufficient_storage",
+            507,
+            Code::ResourceExhausted,
+        ),
+        (
+            ServiceErrorKind::TimedOut,
+            "timed_out",
+            408,
+            Code::DeadlineExceeded,
+        ),
         (ServiceErrorKind::Internal, "internal", 500, Code::Internal),
     ];
 
@@ -180,7 +199,9 @@ mod tests {
                 ServiceErrorKind::Unsupported => 7,
                 ServiceErrorKind::Busy => 8,
                 ServiceErrorKind::Overloaded => 9,
-                ServiceErrorKind::Internal => 10,
+                ServiceErrorKind::InsufficientStorage => 10,
+                ServiceErrorKind::TimedOut => 11,
+                ServiceErrorKind::Internal => 12,
             };
             assert_eq!(ServiceErrorKind::ALL[position], kind);
         }
@@ -212,6 +233,28 @@ mod tests {
         let response = ServiceError::NotReady.into_response();
         assert_eq!(response.status(), StatusCode::SERVICE_UNAVAILABLE);
         assert_eq!(response.headers().get(header::RETRY_AFTER).unwrap(), "1");
+    }
+
+    #[test]
+    fn a_full_disk_is_insufficient_storage_and_other_file_failures_are_internal() {
+        let full = std::io::Error::from(std::io::ErrorKind::StorageFull);
+        let error = ServiceError::storage("cannot store clip abc", &full);
+        assert_eq!(error.kind(), ServiceErrorKind::InsufficientStorage);
+        assert!(error.to_string().contains("disk is full"), "{error}");
+        let response = error.into_response();
+        assert_eq!(response.status(), StatusCode::INSUFFICIENT_STORAGE);
+        assert!(response.headers().get(header::RETRY_AFTER).is_none());
+        let status = tonic::Status::from(ServiceError::storage("x", &full));
+        assert_eq!(status.code(), Code::ResourceExhausted);
+        assert_eq!(
+            status.metadata().get(GRPC_KIND_KEY).unwrap(),
+            "insufficient_storage"
+        );
+        let denied = std::io::Error::from(std::io::ErrorKind::PermissionDenied);
+        assert_eq!(
+            ServiceError::storage("cannot store clip abc", &denied).kind(),
+            ServiceErrorKind::Internal
+        );
     }
 
     #[test]

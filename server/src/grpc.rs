@@ -371,7 +371,7 @@ impl C4g for Grpc {
             request.keyframes.as_ref(),
             request.prune.as_ref(),
         )?;
-        let approximation = service.approximation(&quality, &times)?;
+        let approximation = service.approximation(&record, &quality, &times)?;
         let encoding = service.store.encoding(&record.id).await?;
         let precision: Precision = wire::precision_from_proto(request.precision());
         let (tx, rx) = mpsc::channel(STREAM_AHEAD);
@@ -485,7 +485,7 @@ impl C4g for Grpc {
             request.keyframes.as_ref(),
             request.prune.as_ref(),
         )?;
-        let approximation = service.approximation(&quality, &times)?;
+        let approximation = service.approximation(&record, &quality, &times)?;
         let encoding = service.store.encoding(&record.id).await?;
         let (tx, rx) = mpsc::channel(STREAM_AHEAD);
         let bg = path.background;

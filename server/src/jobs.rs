@@ -1,11 +1,17 @@
 //! Refinement jobs: durable records, a queue, and leases for the workers that run them.
 //!
 //! A job is `queued` → `running` (with progress) → `done`, `failed` or `cancelled`. Every change
-//! is written to `<store>/jobs/<id>/job.json` (atomically) before it is visible, so a restarted
-//! server knows every job. A running job holds a lease that its worker renews with each progress
-//! report; when a lease runs out (the worker died or hung) or the server restarts, the job goes
-//! back to the queue for another attempt, or fails once its attempts are spent: never stuck in
-//! `running`, never silently lost.
+//! is written to `<store>/jobs/<id>/job.json` (a synced temporary file renamed into place, the
+//! rename synced) before it is visible, so a restarted server knows every job. A running job
+//! holds a lease that its worker renews with each progress report; when a lease runs out (the
+//! worker died or hung) or the server restarts, the job goes back to the queue for another
+//! attempt, or fails once its attempts are spent: never stuck in `running`, never silently lost.
+//!
+//! A result is stored whole before the record says `done`: the refined frames and a
+//! `result.json` naming the attempt go into a temporary directory renamed to `result/`. A server
+//! that crashed between that rename and the record's update finds the result on opening and
+//! marks the job done, so a finished job is never run to completion twice. Leftovers of
+//! interrupted writes are removed on opening.
 
 use std::collections::{BTreeMap, VecDeque};
 use std::path::{Path, PathBuf};
@@ -17,7 +23,17 @@ use sha2::{Digest, Sha256};
 use tokio::sync::{Notify, watch};
 
 use crate::ServiceError;
-use crate::store::now;
+use crate::faults;
+use crate::store::{now, sync_dir, write_synced};
+
+/// What a stored result says about itself (`result/result.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct ResultMarker {
+    attempt: u32,
+    worker: String,
+    frames: usize,
+    seconds: f64,
+}
 
 /// Where a job is in its life.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -116,10 +132,11 @@ struct State {
 
 impl JobStore {
     /// Opens the job store under `dir`. Jobs that were running when the server stopped go back
-    /// to the queue (or fail, when out of attempts).
+    /// to the queue (or fail, when out of attempts), unless their result was stored: those are
+    /// done.
     pub fn open(dir: &Path, lease: Duration, max_attempts: u32) -> Result<Self, ServiceError> {
         std::fs::create_dir_all(dir)
-            .map_err(|e| ServiceError::Internal(format!("cannot create {}: {e}", dir.display())))?;
+            .map_err(|e| ServiceError::storage(format!("cannot create {}", dir.display()), &e))?;
         let store = Self {
             dir: dir.to_path_buf(),
             lease,
@@ -128,27 +145,26 @@ impl JobStore {
             queued: Notify::new(),
         };
         let mut records: Vec<JobRecord> = std::fs::read_dir(dir)
-            .map_err(|e| ServiceError::Internal(format!("cannot read {}: {e}", dir.display())))?
+            .map_err(|e| ServiceError::storage(format!("cannot read {}", dir.display()), &e))?
             .flatten()
-            .filter_map(|e| {
-                let path = e.path().join("job.json");
-                let bytes = std::fs::read(&path).ok()?;
-                match serde_json::from_slice(&bytes) {
-                    Ok(record) => Some(record),
-                    Err(err) => {
-                        tracing::warn!(path = %path.display(), "unreadable job skipped: {err}");
-                        None
-                    }
-                }
-            })
+            .filter_map(|e| read_job_dir(&e.path()))
             .collect();
         records.sort_by(|a, b| (a.created_at, &a.id).cmp(&(b.created_at, &b.id)));
         {
             let mut state = store.lock();
             for mut record in records {
                 if record.state == JobState::Running {
-                    store.retry_or_fail(&mut record, "the server restarted while it ran");
-                    store.write(&record)?;
+                    match store.stored_result(&record) {
+                        Some(result) => complete(&mut record, &result, " (found after a restart)"),
+                        None => {
+                            store.retry_or_fail(&mut record, "the server restarted while it ran")
+                        }
+                    }
+                    // On a full disk the change is kept in memory and written with the next one:
+                    // refusing to start would serve nothing at all.
+                    if let Err(e) = store.write(&record) {
+                        tracing::error!(job = %record.id, "cannot store the job's new state: {e}");
+                    }
                 }
                 if record.state == JobState::Queued {
                     state.queue.push_back(record.id.clone());
@@ -173,19 +189,32 @@ impl JobStore {
         Ok(store)
     }
 
+    /// The result of `record`'s current attempt, when it is stored.
+    fn stored_result(&self, record: &JobRecord) -> Option<ResultMarker> {
+        let bytes = std::fs::read(self.result_dir(&record.id).join("result.json")).ok()?;
+        let marker: ResultMarker = serde_json::from_slice(&bytes).ok()?;
+        (marker.attempt == record.attempt).then_some(marker)
+    }
+
     fn lock(&self) -> MutexGuard<'_, State> {
         self.state.lock().unwrap_or_else(|p| p.into_inner())
     }
 
     fn write(&self, record: &JobRecord) -> Result<(), ServiceError> {
         let dir = self.dir.join(&record.id);
+        let json = serde_json::to_vec_pretty(record).map_err(|e| {
+            ServiceError::Internal(format!("cannot serialise job {}: {e}", record.id))
+        })?;
+        let tmp = dir.join(".job.json.tmp");
         std::fs::create_dir_all(&dir)
-            .and_then(|()| {
-                let tmp = dir.join(".job.json.tmp");
-                std::fs::write(&tmp, serde_json::to_vec_pretty(record).unwrap_or_default())?;
-                std::fs::rename(&tmp, dir.join("job.json"))
+            .and_then(|()| sync_dir(&self.dir))
+            .and_then(|()| write_synced(&tmp, &json))
+            .and_then(|()| std::fs::rename(&tmp, dir.join("job.json")))
+            .and_then(|()| sync_dir(&dir))
+            .map_err(|e| {
+                let _ = std::fs::remove_file(&tmp);
+                ServiceError::storage(format!("cannot store job {}", record.id), &e)
             })
-            .map_err(|e| ServiceError::Internal(format!("cannot store job {}: {e}", record.id)))
     }
 
     /// Applies `change` to job `id`, stores and publishes the result.
@@ -266,7 +295,10 @@ impl JobStore {
             updated_at: now(),
             cancel_requested: false,
         };
-        self.write(&record)?;
+        if let Err(e) = self.write(&record) {
+            let _ = std::fs::remove_dir_all(self.dir.join(&id));
+            return Err(e);
+        }
         let mut state = self.lock();
         let (updates, _) = watch::channel(record.clone());
         state.jobs.insert(
@@ -389,30 +421,54 @@ impl JobStore {
         frames: &[Vec<u8>],
         seconds: f64,
     ) -> Result<JobRecord, ServiceError> {
-        Self::check_owner(&self.get(id)?, worker)?;
+        let current = self.get(id)?;
+        Self::check_owner(&current, worker)?;
+        let attempt = current.attempt;
+        let marker = ResultMarker {
+            attempt,
+            worker: worker.to_owned(),
+            frames: frames.len(),
+            seconds,
+        };
         let dir = self.result_dir(id);
-        let tmp = self.dir.join(id).join(".result.tmp");
+        let job_dir = self.dir.join(id);
+        let tmp = job_dir.join(".result.tmp");
         let _ = std::fs::remove_dir_all(&tmp);
-        std::fs::create_dir_all(&tmp)
+        let stored = std::fs::create_dir_all(&tmp)
             .and_then(|()| {
                 for (i, png) in frames.iter().enumerate() {
-                    std::fs::write(tmp.join(format!("{i:04}.png")), png)?;
+                    write_synced(&tmp.join(format!("{i:04}.png")), png)?;
                 }
+                let json = serde_json::to_vec_pretty(&marker).map_err(std::io::Error::other)?;
+                write_synced(&tmp.join("result.json"), &json)?;
+                sync_dir(&tmp)?;
                 let _ = std::fs::remove_dir_all(&dir);
-                std::fs::rename(&tmp, &dir)
+                std::fs::rename(&tmp, &dir)?;
+                sync_dir(&job_dir)
             })
-            .map_err(|e| ServiceError::Internal(format!("cannot store the result of {id}: {e}")))?;
+            .map_err(|e| ServiceError::storage(format!("cannot store the result of {id}"), &e));
+        if let Err(e) = stored {
+            let _ = std::fs::remove_dir_all(&tmp);
+            return Err(e);
+        }
+        faults::pause("job-result-stored");
         let record = self.update(id, |record, lease_until| {
             Self::check_owner(record, worker)?;
-            record.state = JobState::Done;
-            record.result_frames = frames.len();
-            record.seconds = Some(seconds);
-            record
-                .history
-                .push(format!("attempt {}: done on {worker}", record.attempt));
+            if record.attempt != attempt {
+                return Err(ServiceError::invalid(format!(
+                    "job {id} moved on to attempt {} while attempt {attempt} was stored; drop it",
+                    record.attempt
+                )));
+            }
+            complete(record, &marker, "");
             *lease_until = None;
             Ok(())
-        })?;
+        });
+        // A result the record does not take is removed, so that no restart mistakes it for one.
+        if record.is_err() {
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+        let record = record?;
         metrics::counter!("c4g_jobs_total", "outcome" => "done").increment(1);
         Ok(record)
     }
@@ -511,6 +567,49 @@ fn not_found(id: &str) -> ServiceError {
     ServiceError::NotFound(format!("no job {id:?} (GET /v1/jobs lists them)"))
 }
 
+/// Marks `record` done with the stored `result`.
+fn complete(record: &mut JobRecord, result: &ResultMarker, note: &str) {
+    record.state = JobState::Done;
+    record.result_frames = result.frames;
+    record.seconds = Some(result.seconds);
+    record.history.push(format!(
+        "attempt {}: done on {}{note}",
+        record.attempt, result.worker
+    ));
+}
+
+/// The record in job directory `dir`, cleaning up what interrupted writes left there. A
+/// directory without a record is a creation that never finished (never answered): removed.
+fn read_job_dir(dir: &Path) -> Option<JobRecord> {
+    let name = dir.file_name()?.to_string_lossy().into_owned();
+    if name.starts_with('.') || !dir.is_dir() {
+        let _ = std::fs::remove_dir_all(dir).or_else(|_| std::fs::remove_file(dir));
+        return None;
+    }
+    let _ = std::fs::remove_file(dir.join(".job.json.tmp"));
+    let _ = std::fs::remove_dir_all(dir.join(".result.tmp"));
+    let path = dir.join("job.json");
+    let bytes = match std::fs::read(&path) {
+        Ok(bytes) => bytes,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            tracing::info!(path = %dir.display(), "removing a job whose creation was interrupted");
+            let _ = std::fs::remove_dir_all(dir);
+            return None;
+        }
+        Err(e) => {
+            tracing::warn!(path = %path.display(), "unreadable job skipped: {e}");
+            return None;
+        }
+    };
+    match serde_json::from_slice(&bytes) {
+        Ok(record) => Some(record),
+        Err(err) => {
+            tracing::warn!(path = %path.display(), "unreadable job skipped: {err}");
+            None
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
@@ -583,6 +682,52 @@ mod tests {
             std::fs::read(jobs.result_dir(&id).join("0000.png")).unwrap(),
             vec![1, 2, 3]
         );
+    }
+
+    #[tokio::test]
+    async fn a_result_stored_before_a_crash_makes_the_job_done_not_run_again() {
+        let dir = tempfile::tempdir().unwrap();
+        let (stored, plain) = {
+            let jobs = store(dir.path(), 60_000);
+            let stored = jobs.create("clip", serde_json::json!({})).unwrap();
+            let plain = jobs.create("clip", serde_json::json!({})).unwrap();
+            jobs.take("w1", Duration::ZERO).await.unwrap();
+            jobs.take("w2", Duration::ZERO).await.unwrap();
+            // What a crash between storing the result and the record leaves: the result in
+            // place, the record saying running.
+            let result = jobs.result_dir(&stored.id);
+            std::fs::create_dir_all(&result).unwrap();
+            std::fs::write(result.join("0000.png"), [1, 2]).unwrap();
+            let marker = ResultMarker {
+                attempt: 1,
+                worker: "w1".into(),
+                frames: 1,
+                seconds: 2.0,
+            };
+            std::fs::write(
+                result.join("result.json"),
+                serde_json::to_vec(&marker).unwrap(),
+            )
+            .unwrap();
+            // And interrupted writes.
+            std::fs::write(dir.path().join(&plain.id).join(".job.json.tmp"), b"{").unwrap();
+            std::fs::create_dir_all(dir.path().join("job-never-created")).unwrap();
+            (stored.id, plain.id)
+        };
+        let jobs = store(dir.path(), 60_000);
+        let done = jobs.get(&stored).unwrap();
+        assert_eq!(
+            (done.state, done.attempt, done.result_frames),
+            (JobState::Done, 1, 1)
+        );
+        assert!(done.history[0].contains("done on w1"), "{:?}", done.history);
+        let requeued = jobs.get(&plain).unwrap();
+        assert_eq!((requeued.state, requeued.attempt), (JobState::Queued, 2));
+        let taken = jobs.take("w3", Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(taken.id, plain, "the done job is never handed out");
+        assert!(!dir.path().join(&plain).join(".job.json.tmp").exists());
+        assert!(!dir.path().join("job-never-created").exists());
+        assert_eq!(jobs.list().len(), 2);
     }
 
     #[tokio::test]

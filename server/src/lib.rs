@@ -6,7 +6,7 @@
 //! | [`intake`] | untrusted uploads (videos via FFmpeg, image archives) to timed context frames |
 //! | [`store`] | the clip store: content-addressed clips on disk, features in an LRU cache |
 //! | [`service`] | upload, decode, render: what both transports call |
-//! | `work` | work slots: decodes and renders on blocking threads, bounded, behind a bounded queue |
+//! | `work` | work slots: decodes and renders on blocking threads, bounded, queued, cancellable |
 //! | [`jobs`] | refinement jobs: durable records, the queue, worker leases |
 //! | `refine` | refinement requests, and the video a worker gets |
 //! | `camera` | cameras as clients state them |
@@ -16,12 +16,14 @@
 //! | `renderer` | the rasterizer choice |
 //! | `image_formats` | what renders answer with: PNG, raw depth and alpha, MP4 |
 //! | `service_error` | [`ServiceError`]: what went wrong, in domain words, and its kinds |
+//! | [`faults`] | fault points where tests stop the server to kill it (off unless named) |
 //! | *the edge* | |
 //! | `api` | the REST routes, one file per endpoint group; `/openapi.json` and `/docs` |
 //! | `grpc` | the gRPC service `c4g.v1.C4G`, health and reflection, on the same port |
 //! | `workers` | the gRPC service `c4g.v1.Jobs` that refinement workers pull from |
 //! | `wire` | Gaussian sets as JSON and gRPC messages (the binary `C4GS` codec is the renderer's) |
 //! | `auth` | API-key checks |
+//! | [`body_deadline`] | slow clients: a request body must arrive within `C4G_BODY_TIMEOUT_S` |
 //! | `metrics` | the Prometheus recorder and per-request metrics |
 //! | `error` | the one place where a [`ServiceError`] becomes an HTTP status and a gRPC code |
 //!
@@ -31,9 +33,11 @@
 
 mod api;
 mod auth;
+pub mod body_deadline;
 mod camera;
 pub mod config;
 mod error;
+pub mod faults;
 mod grpc;
 mod image_formats;
 pub mod intake;

@@ -31,6 +31,7 @@ async fn main() -> ExitCode {
 }
 
 async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
+    c4g_server::faults::arm(&config.fault_pause)?;
     let state = AppState::new(config.clone(), c4g_server::metrics::install());
     let listener = tokio::net::TcpListener::bind(config.listen).await?;
     // Printed on stdout so scripts and tests can find a port chosen by the OS.
@@ -47,12 +48,15 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
             Ok(())
         })
     };
+    let app = c4g_server::body_deadline::layer(router(state.clone()), config.body_timeout());
     let server = tokio::spawn(
-        axum::serve(listener, router(state.clone()))
+        axum::serve(listener, app)
             .with_graceful_shutdown(shutdown_signal())
             .into_future(),
     );
-    // A model that cannot load ends the process: a server that can never be ready helps nobody.
+    // A model that cannot load (a missing or corrupt graph, no ONNX Runtime) ends the process
+    // with the reason: a server that can never be ready helps nobody, and an orchestrator sees
+    // the failed start. Until then /health answers and /ready says 503 not_ready.
     loading.await??;
     // Jobs whose worker went quiet go back to the queue (or fail) within a second of their lease.
     if let Ok(service) = state.service() {

@@ -150,7 +150,7 @@ impl Service {
         media: Media,
         options: IntakeOptions,
     ) -> Result<NewClip, ServiceError> {
-        let _slot = self.encode_slots.clone().try_acquire_owned().map_err(|_| {
+        let slot = self.encode_slots.clone().try_acquire_owned().map_err(|_| {
             metrics::counter!("c4g_rejected_total", "reason" => "encodes_busy").increment(1);
             ServiceError::Busy {
                 retry_after: ENCODE_RETRY_AFTER,
@@ -163,6 +163,8 @@ impl Service {
         let source = intake.source.clone();
         let frame_step = intake.frame_step;
         let (encoding, frames) = tokio::task::spawn_blocking(move || {
+            // Held by the encode itself: one whose client left still runs, and still counts.
+            let _slot = slot;
             let started = Instant::now();
             let context = intake
                 .frames
@@ -174,6 +176,7 @@ impl Service {
                     ))
                 })
                 .collect::<Result<Vec<_>, ServiceError>>()?;
+            crate::faults::pause("encode");
             let encoding = service
                 .engine
                 .encode(&context)?
@@ -244,13 +247,16 @@ impl Service {
         Ok(())
     }
 
-    /// The approximation a request over `times` asks for, checked (by default: exact).
+    /// The approximation a request over `times` of clip `record` asks for, checked (by
+    /// default: exact). Presets space their keyframes by the clip's context spacing.
     pub fn approximation(
         &self,
+        record: &ClipRecord,
         spec: &QualitySpec,
         times: &[f64],
     ) -> Result<Approximation, ServiceError> {
-        quality::resolve(spec, times, self.limits.max_times)
+        let spacing = quality::context_spacing(&record.context_times);
+        quality::resolve(spec, times, self.limits.max_times, spacing)
     }
 
     /// The Gaussians of clip `id` at each time: decoded exactly, or approximated as `quality`
@@ -263,7 +269,7 @@ impl Service {
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
         let record = self.store.get(id)?;
         self.check_times(&record, &times)?;
-        let approximation = self.approximation(&quality, &times)?;
+        let approximation = self.approximation(&record, &quality, &times)?;
         let encoding = self.store.encoding(id).await?;
         let id = id.to_owned();
         self.work(move |service| {
@@ -417,7 +423,7 @@ impl Service {
         let (w, h) = self.image_size(view.width, view.height)?;
         let camera = view.camera.camera(w, h)?;
         check_background(view.background)?;
-        let approximation = self.approximation(&quality, &[view.t])?;
+        let approximation = self.approximation(&record, &quality, &[view.t])?;
         let encoding = self.store.encoding(id).await?;
         let id = id.to_owned();
         self.work(move |service| {
@@ -515,7 +521,10 @@ impl Service {
         prune(keep.as_deref(), sets)?
             .iter()
             .zip(path)
-            .map(|((_, set), (_, camera))| self.render_now(set, camera, background))
+            .map(|((_, set), (_, camera))| {
+                crate::work::stop_if_cancelled()?;
+                self.render_now(set, camera, background)
+            })
             .collect()
     }
 

@@ -47,6 +47,12 @@ pub enum ServiceError {
         /// When to try again.
         retry_after: Duration,
     },
+    /// The store's disk is full: nothing was stored (see [`storage`](Self::storage)).
+    #[error("{0}")]
+    InsufficientStorage(String),
+    /// The client took longer than a limit allows (a request body that did not arrive in time).
+    #[error("{0}")]
+    TimedOut(String),
     /// The server failed; the message is logged and shown.
     #[error("internal error: {0}")]
     Internal(String),
@@ -82,13 +88,17 @@ pub enum ServiceErrorKind {
     Busy,
     /// The work queue is full: retry later.
     Overloaded,
+    /// The store's disk is full: the operator frees space (or the client deletes clips).
+    InsufficientStorage,
+    /// The client was too slow (a request body that did not arrive in time).
+    TimedOut,
     /// The server (or its model package) failed: the operator fixes it.
     Internal,
 }
 
 impl ServiceErrorKind {
     /// Every kind, for tables and tests.
-    pub const ALL: [Self; 11] = [
+    pub const ALL: [Self; 13] = [
         Self::NotReady,
         Self::InvalidInput,
         Self::Unauthorized,
@@ -99,6 +109,8 @@ impl ServiceErrorKind {
         Self::Unsupported,
         Self::Busy,
         Self::Overloaded,
+        Self::InsufficientStorage,
+        Self::TimedOut,
         Self::Internal,
     ];
 
@@ -115,6 +127,8 @@ impl ServiceErrorKind {
             Self::Unsupported => "unsupported",
             Self::Busy => "busy",
             Self::Overloaded => "overloaded",
+            Self::InsufficientStorage => "insufficient_storage",
+            Self::TimedOut => "timed_out",
             Self::Internal => "internal",
         }
     }
@@ -124,6 +138,23 @@ impl ServiceError {
     /// Shorthand for [`ServiceError::InvalidInput`].
     pub fn invalid(message: impl Into<String>) -> Self {
         Self::InvalidInput(message.into())
+    }
+
+    /// A file operation of the store that failed: `what` says what it was for. A full disk (or
+    /// quota) is [`InsufficientStorage`](Self::InsufficientStorage), the one storage failure a
+    /// client should hear about as such (it is not the request's fault, and it passes when space
+    /// returns); any other is the server's failure.
+    pub fn storage(what: impl std::fmt::Display, error: &std::io::Error) -> Self {
+        use std::io::ErrorKind;
+        match error.kind() {
+            ErrorKind::StorageFull | ErrorKind::QuotaExceeded | ErrorKind::FileTooLarge => {
+                Self::InsufficientStorage(format!(
+                    "{what}: the server's disk is full ({error}); nothing was stored. Free space on \
+                     the store's disk (C4G_STORE_DIR) or delete clips, then retry"
+                ))
+            }
+            _ => Self::Internal(format!("{what}: {error}")),
+        }
     }
 
     /// What kind of failure this is.
@@ -139,6 +170,8 @@ impl ServiceError {
             Self::UnreadableMedia(_) => K::UnreadableMedia,
             Self::Busy { .. } => K::Busy,
             Self::Overloaded { .. } => K::Overloaded,
+            Self::InsufficientStorage(_) => K::InsufficientStorage,
+            Self::TimedOut(_) => K::TimedOut,
             Self::Internal(_) => K::Internal,
             Self::Engine(e) => engine_kind(e.kind()),
             Self::Renderer(e) => renderer_kind(e),

@@ -2,9 +2,16 @@
 //!
 //! - Ids are content addresses ([`crate::intake::clip_id`]): the same upload is encoded once.
 //! - A clip is written to disk when it is encoded (`<dir>/<model key>/clips/<id>/`: `clip.json`,
-//!   `features.f32` as little-endian floats, and the context frames as PNG), atomically (a
-//!   temporary directory renamed into place), so a restart serves it without encoding again and a
-//!   crash never leaves half a clip.
+//!   `features.f32` as little-endian floats, and the context frames as PNG), into a temporary
+//!   directory whose files and directory are synced, then renamed into place (and the rename
+//!   synced): a crash, even of the machine, leaves the whole clip or none of it. The write and
+//!   the index update finish even when the uploading client goes away, so the index always
+//!   agrees with the disk.
+//! - On opening, leftovers of interrupted writes and deletes (dot-directories) are removed, and a
+//!   clip directory that cannot be served (unreadable record, features of the wrong size, a
+//!   missing frame) is moved aside to `<model key>/damaged/` and logged, never deleted.
+//! - A full disk is [`ServiceError::InsufficientStorage`]; what a failed write left is removed at
+//!   once, so a full disk does not stay full of half clips.
 //! - Features live in an LRU cache under a byte budget; an evicted clip reloads from disk on its
 //!   next request.
 //! - Concurrent uploads of one clip encode it once: later callers wait for the first.
@@ -14,6 +21,7 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{SystemTime, UNIX_EPOCH};
@@ -26,6 +34,7 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::OnceCell;
 
 use crate::ServiceError;
+use crate::faults;
 use crate::intake::{IntakeOptions, SourceInfo};
 
 /// What the store knows about a clip without its features.
@@ -91,7 +100,9 @@ pub struct NewClip {
 pub struct ClipStore {
     dir: PathBuf,
     budget: u64,
-    state: Mutex<State>,
+    // Shared with the blocking task that writes a clip, which indexes it when the write is done
+    // whether or not its caller is still waiting.
+    state: Arc<Mutex<State>>,
 }
 
 struct State {
@@ -101,54 +112,57 @@ struct State {
     inflight: HashMap<String, Arc<OnceCell<Arc<ClipRecord>>>>,
 }
 
+fn lock(state: &Mutex<State>) -> MutexGuard<'_, State> {
+    // A panic while holding the lock leaves consistent data (every update is one step).
+    state.lock().unwrap_or_else(|p| p.into_inner())
+}
+
 impl ClipStore {
     /// Opens (creating) the store for the model with key `model_key` under `root`, loading every
-    /// clip's record (features load when first asked for). Unreadable clip directories are
-    /// logged and skipped, never deleted.
+    /// clip's record (features load when first asked for). Leftovers of interrupted writes are
+    /// removed; clip directories that cannot be served are moved aside to `damaged/`.
     pub fn open(root: &Path, model_key: &str, budget_bytes: u64) -> Result<Self, ServiceError> {
         let dir = root.join(model_key).join("clips");
         std::fs::create_dir_all(&dir).map_err(|e| {
-            ServiceError::Internal(format!("cannot create the store {}: {e}", dir.display()))
+            ServiceError::storage(format!("cannot create the store {}", dir.display()), &e)
         })?;
         let mut records = BTreeMap::new();
         let entries = std::fs::read_dir(&dir).map_err(|e| {
-            ServiceError::Internal(format!("cannot read the store {}: {e}", dir.display()))
+            ServiceError::storage(format!("cannot read the store {}", dir.display()), &e)
         })?;
         for entry in entries.flatten() {
             let path = entry.path();
             let name = entry.file_name().to_string_lossy().into_owned();
             if name.starts_with('.') {
-                // An interrupted write: never complete, safe to drop.
-                let _ = std::fs::remove_dir_all(&path);
+                // An interrupted write or delete: never visible, safe to drop.
+                tracing::info!(path = %path.display(), "removing the leftover of an interrupted write");
+                let _ = std::fs::remove_dir_all(&path).or_else(|_| std::fs::remove_file(&path));
                 continue;
             }
-            match read_record(&path) {
-                Ok(record) if record.id == name => {
+            match check_clip(&path, &name) {
+                Ok(record) => {
                     records.insert(name, Arc::new(record));
                 }
-                Ok(_) => {
-                    tracing::warn!(path = %path.display(), "clip id does not match its directory; skipped")
-                }
-                Err(e) => tracing::warn!(path = %path.display(), "unreadable clip skipped: {e}"),
+                Err(why) => set_aside(root.join(model_key), &path, &name, &why),
             }
         }
         tracing::info!(clips = records.len(), dir = %dir.display(), "clip store opened");
         metrics::gauge!("c4g_clips").set(records.len() as f64);
+        metrics::gauge!("c4g_clips_in_progress").set(0.0);
         Ok(Self {
             dir,
             budget: budget_bytes,
-            state: Mutex::new(State {
+            state: Arc::new(Mutex::new(State {
                 records,
                 cache: LruCache::unbounded(),
                 cached_bytes: 0,
                 inflight: HashMap::new(),
-            }),
+            })),
         })
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {
-        // A panic while holding the lock leaves consistent data (every update is one step).
-        self.state.lock().unwrap_or_else(|p| p.into_inner())
+        lock(&self.state)
     }
 
     /// Every clip, oldest first.
@@ -169,7 +183,8 @@ impl ClipStore {
 
     /// The clip `id`, made by `create` when it does not exist yet; `true` when this call made it.
     /// Concurrent calls for one id run `create` once; the others wait and share its result (a
-    /// failure is not shared: the next caller tries again).
+    /// failure is not shared: the next caller tries again). A call whose caller goes away
+    /// leaves nothing behind: its clip is stored whole (when its write had begun) or not at all.
     pub async fn get_or_create<F, Fut>(
         &self,
         id: &str,
@@ -184,7 +199,14 @@ impl ClipStore {
             if let Some(record) = state.records.get(id) {
                 return Ok((record.clone(), false));
             }
-            state.inflight.entry(id.to_owned()).or_default().clone()
+            let cell = state.inflight.entry(id.to_owned()).or_default().clone();
+            metrics::gauge!("c4g_clips_in_progress").set(state.inflight.len() as f64);
+            cell
+        };
+        let _done = Inflight {
+            state: &self.state,
+            id,
+            cell: &cell,
         };
         let mut created = false;
         let result = cell
@@ -197,35 +219,28 @@ impl ClipStore {
             })
             .await
             .cloned();
-        let mut state = self.lock();
-        if state
-            .inflight
-            .get(id)
-            .is_some_and(|c| Arc::ptr_eq(c, &cell))
-            && cell.initialized()
-        {
-            state.inflight.remove(id);
-        }
         result.map(|record| (record, created))
     }
 
     async fn persist(&self, new: NewClip) -> Result<(), ServiceError> {
-        let NewClip {
-            record,
-            encoding,
-            frames,
-        } = new;
-        let encoding = Arc::new(encoding);
-        let (dir, id) = (self.dir.clone(), record.id.clone());
-        let to_write = (record.clone(), encoding.clone());
-        tokio::task::spawn_blocking(move || write_clip(&dir, &to_write.0, &to_write.1, &frames))
-            .await
-            .map_err(|e| ServiceError::Internal(format!("writing a clip panicked: {e}")))??;
-        let mut state = self.lock();
-        state.records.insert(id.clone(), Arc::new(record));
-        metrics::gauge!("c4g_clips").set(state.records.len() as f64);
-        self.insert_cached(&mut state, id, encoding);
-        Ok(())
+        let (dir, state, budget) = (self.dir.clone(), self.state.clone(), self.budget);
+        tokio::task::spawn_blocking(move || {
+            let NewClip {
+                record,
+                encoding,
+                frames,
+            } = new;
+            write_clip(&dir, &record, &encoding, &frames)?;
+            faults::pause("clip-stored");
+            let id = record.id.clone();
+            let mut state = lock(&state);
+            state.records.insert(id.clone(), Arc::new(record));
+            metrics::gauge!("c4g_clips").set(state.records.len() as f64);
+            state.insert_cached(budget, id, Arc::new(encoding));
+            Ok(())
+        })
+        .await
+        .map_err(|e| ServiceError::Internal(format!("writing a clip panicked: {e}")))?
     }
 
     /// The clip's encoder features: from memory, or read back from disk.
@@ -250,7 +265,7 @@ impl ClipStore {
         let encoding = Arc::new(encoding);
         let mut state = self.lock();
         if state.records.contains_key(id) {
-            self.insert_cached(&mut state, id.to_owned(), encoding.clone());
+            state.insert_cached(self.budget, id.to_owned(), encoding.clone());
         }
         Ok(encoding)
     }
@@ -261,23 +276,6 @@ impl ClipStore {
             .join(id)
             .join("frames")
             .join(format!("{index:03}.png"))
-    }
-
-    fn insert_cached(&self, state: &mut State, id: String, encoding: Arc<Encoding>) {
-        let bytes = (encoding.features().len() * 4) as u64;
-        if let Some(old) = state.cache.put(id, encoding) {
-            state.cached_bytes -= (old.features().len() * 4) as u64;
-        }
-        state.cached_bytes += bytes;
-        // The newest entry stays even alone over the budget: evicting what was just asked for
-        // would only thrash.
-        while state.cached_bytes > self.budget && state.cache.len() > 1 {
-            if let Some((_, old)) = state.cache.pop_lru() {
-                state.cached_bytes -= (old.features().len() * 4) as u64;
-                metrics::counter!("c4g_cache_evictions_total").increment(1);
-            }
-        }
-        metrics::gauge!("c4g_cache_bytes").set(state.cached_bytes as f64);
     }
 
     /// Deletes a clip from memory and disk.
@@ -297,8 +295,51 @@ impl ClipStore {
         let path = self.dir.join(id);
         let doomed = self.dir.join(format!(".deleted-{id}"));
         std::fs::rename(&path, &doomed)
+            .and_then(|()| sync_dir(&self.dir))
             .and_then(|()| std::fs::remove_dir_all(&doomed))
-            .map_err(|e| ServiceError::Internal(format!("cannot delete clip {id} from disk: {e}")))
+            .map_err(|e| ServiceError::storage(format!("cannot delete clip {id} from disk"), &e))
+    }
+}
+
+impl State {
+    fn insert_cached(&mut self, budget: u64, id: String, encoding: Arc<Encoding>) {
+        let bytes = (encoding.features().len() * 4) as u64;
+        if let Some(old) = self.cache.put(id, encoding) {
+            self.cached_bytes -= (old.features().len() * 4) as u64;
+        }
+        self.cached_bytes += bytes;
+        // The newest entry stays even alone over the budget: evicting what was just asked for
+        // would only thrash.
+        while self.cached_bytes > budget && self.cache.len() > 1 {
+            if let Some((_, old)) = self.cache.pop_lru() {
+                self.cached_bytes -= (old.features().len() * 4) as u64;
+                metrics::counter!("c4g_cache_evictions_total").increment(1);
+            }
+        }
+        metrics::gauge!("c4g_cache_bytes").set(self.cached_bytes as f64);
+    }
+}
+
+/// Takes an upload's entry out of the in-flight map when its call ends (answered, failed, or
+/// dropped with its client), unless other callers still wait on it: the last one out removes it.
+struct Inflight<'a> {
+    state: &'a Mutex<State>,
+    id: &'a str,
+    cell: &'a Arc<OnceCell<Arc<ClipRecord>>>,
+}
+
+impl Drop for Inflight<'_> {
+    fn drop(&mut self) {
+        let mut state = lock(self.state);
+        let ours = state
+            .inflight
+            .get(self.id)
+            .is_some_and(|c| Arc::ptr_eq(c, self.cell));
+        // Two holders: the map and this call. More: another caller waits and will clean up.
+        if ours && (self.cell.initialized() || Arc::strong_count(self.cell) <= 2) {
+            state.inflight.remove(self.id);
+        }
+        metrics::gauge!("c4g_clips_in_progress").set(state.inflight.len() as f64);
     }
 }
 
@@ -309,53 +350,140 @@ fn not_found(id: &str) -> ServiceError {
 }
 
 fn read_record(dir: &Path) -> Result<ClipRecord, String> {
-    let text = std::fs::read(dir.join("clip.json")).map_err(|e| e.to_string())?;
-    serde_json::from_slice(&text).map_err(|e| e.to_string())
+    let text = std::fs::read(dir.join("clip.json")).map_err(|e| format!("clip.json: {e}"))?;
+    serde_json::from_slice(&text).map_err(|e| format!("clip.json: {e}"))
 }
 
+/// The record of the clip directory `dir` named `name`, when the directory holds everything a
+/// request may read: the record, features of the recorded size, one PNG per context frame.
+fn check_clip(dir: &Path, name: &str) -> Result<ClipRecord, String> {
+    let record = read_record(dir)?;
+    if record.id != name {
+        return Err(format!("its record is of clip {:?}", record.id));
+    }
+    let features = std::fs::metadata(dir.join("features.f32"))
+        .map_err(|e| format!("features.f32: {e}"))?
+        .len();
+    if features != record.feature_bytes() {
+        return Err(format!(
+            "features.f32 holds {features} bytes, its record says {}",
+            record.feature_bytes()
+        ));
+    }
+    for index in 0..record.context_times.len() {
+        let frame = dir.join("frames").join(format!("{index:03}.png"));
+        if !frame.is_file() {
+            return Err(format!("context frame {index} is missing"));
+        }
+    }
+    Ok(record)
+}
+
+/// Moves the unservable clip directory `path` to `<model dir>/damaged/`, for an operator to look
+/// at: never deleted, never served.
+fn set_aside(model_dir: PathBuf, path: &Path, name: &str, why: &str) {
+    let damaged = model_dir.join("damaged");
+    let target = damaged.join(format!("{name}-{}", nonce()));
+    match std::fs::create_dir_all(&damaged).and_then(|()| std::fs::rename(path, &target)) {
+        Ok(()) => tracing::warn!(
+            clip = name, moved_to = %target.display(),
+            "a stored clip cannot be served ({why}): moved aside"
+        ),
+        Err(e) => tracing::warn!(
+            path = %path.display(),
+            "a stored clip cannot be served ({why}) nor moved aside ({e}): skipped"
+        ),
+    }
+}
+
+fn nonce() -> u128 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_nanos())
+        .unwrap_or(0)
+}
+
+/// Writes `bytes` to a new file at `path` and syncs it to the disk.
+pub(crate) fn write_synced(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let mut file = std::fs::File::create(path)?;
+    file.write_all(bytes)?;
+    file.sync_all()
+}
+
+/// Syncs a directory, so that the entries just created or renamed in it survive a crash of the
+/// machine.
+pub(crate) fn sync_dir(dir: &Path) -> std::io::Result<()> {
+    std::fs::File::open(dir)?.sync_all()
+}
+
+/// Writes a clip into a temporary directory next to its place and renames it there; on failure
+/// removes what it wrote.
 fn write_clip(
     root: &Path,
     record: &ClipRecord,
     encoding: &Encoding,
     frames: &[RgbImage],
 ) -> Result<(), ServiceError> {
-    let fail = |what: &str, e: &dyn std::fmt::Display| {
-        ServiceError::Internal(format!("cannot store clip {}: {what}: {e}", record.id))
-    };
-    let nonce = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_nanos())
-        .unwrap_or(0);
-    let tmp = root.join(format!(".tmp-{}-{nonce}", record.id));
-    std::fs::create_dir_all(tmp.join("frames")).map_err(|e| fail("creating", &e))?;
-    let json = serde_json::to_vec_pretty(record).map_err(|e| fail("serialising", &e))?;
-    std::fs::write(tmp.join("clip.json"), json).map_err(|e| fail("clip.json", &e))?;
+    let tmp = root.join(format!(".tmp-{}-{}", record.id, nonce()));
+    let result = write_clip_files(&tmp, record, encoding, frames).and_then(|()| {
+        let target = root.join(&record.id);
+        if target.exists() {
+            // Another writer finished first with the same content.
+            let _ = std::fs::remove_dir_all(&tmp);
+            return Ok(());
+        }
+        std::fs::rename(&tmp, &target)
+            .and_then(|()| sync_dir(root))
+            .map_err(|e| store_error(record, "moving it into place", &e))
+    });
+    if result.is_err() {
+        let _ = std::fs::remove_dir_all(&tmp);
+    }
+    result
+}
+
+fn store_error(record: &ClipRecord, what: &str, e: &std::io::Error) -> ServiceError {
+    ServiceError::storage(format!("cannot store clip {} ({what})", record.id), e)
+}
+
+fn write_clip_files(
+    tmp: &Path,
+    record: &ClipRecord,
+    encoding: &Encoding,
+    frames: &[RgbImage],
+) -> Result<(), ServiceError> {
+    let frames_dir = tmp.join("frames");
+    std::fs::create_dir_all(&frames_dir).map_err(|e| store_error(record, "creating it", &e))?;
+    let json = serde_json::to_vec_pretty(record)
+        .map_err(|e| ServiceError::Internal(format!("cannot serialise clip {}: {e}", record.id)))?;
+    write_synced(&tmp.join("clip.json"), &json)
+        .map_err(|e| store_error(record, "clip.json", &e))?;
     let bytes: Vec<u8> = encoding
         .features()
         .iter()
         .flat_map(|v| v.to_le_bytes())
         .collect();
-    std::fs::write(tmp.join("features.f32"), bytes).map_err(|e| fail("features", &e))?;
+    write_synced(&tmp.join("features.f32"), &bytes)
+        .map_err(|e| store_error(record, "features", &e))?;
+    faults::pause("clip-features-written");
     for (i, frame) in frames.iter().enumerate() {
-        let file = std::fs::File::create(tmp.join("frames").join(format!("{i:03}.png")))
-            .map_err(|e| fail("a context frame", &e))?;
-        // Fast compression: these are written once per upload, on the upload's clock.
-        let encoder = PngEncoder::new_with_quality(
-            std::io::BufWriter::new(file),
-            CompressionType::Fast,
-            FilterType::Adaptive,
-        );
-        frame
-            .write_with_encoder(encoder)
-            .map_err(|e| fail("a context frame", &e))?;
+        // Encoded in memory, so that a write error is seen (a buffered writer's last flush, on
+        // drop, would lose it). Fast compression: written once per upload, on its clock.
+        let mut png = Vec::new();
+        let encoder =
+            PngEncoder::new_with_quality(&mut png, CompressionType::Fast, FilterType::Adaptive);
+        frame.write_with_encoder(encoder).map_err(|e| {
+            ServiceError::Internal(format!(
+                "cannot encode context frame {i} of clip {}: {e}",
+                record.id
+            ))
+        })?;
+        write_synced(&frames_dir.join(format!("{i:03}.png")), &png)
+            .map_err(|e| store_error(record, "a context frame", &e))?;
     }
-    let target = root.join(&record.id);
-    if target.exists() {
-        // Another writer finished first with the same content.
-        let _ = std::fs::remove_dir_all(&tmp);
-        return Ok(());
-    }
-    std::fs::rename(&tmp, &target).map_err(|e| fail("moving into place", &e))
+    sync_dir(&frames_dir)
+        .and_then(|()| sync_dir(tmp))
+        .map_err(|e| store_error(record, "syncing it", &e))
 }
 
 fn read_features(dir: &Path, record: &ClipRecord) -> Result<Encoding, ServiceError> {
@@ -421,6 +549,43 @@ mod tests {
         let again: ClipRecord =
             serde_json::from_value(serde_json::to_value(&new).unwrap()).unwrap();
         assert_eq!(again, new);
+    }
+
+    #[test]
+    fn opening_drops_interrupted_writes_and_sets_aside_clips_that_cannot_be_served() {
+        let root = tempfile::tempdir().unwrap();
+        let clips = root.path().join("key").join("clips");
+        let write = |name: &str, features: usize, frames: usize| {
+            let dir = clips.join(name);
+            std::fs::create_dir_all(dir.join("frames")).unwrap();
+            let mut record = record_json(Some(0.1), 10.0);
+            record["id"] = name.into();
+            std::fs::write(dir.join("clip.json"), record.to_string()).unwrap();
+            std::fs::write(dir.join("features.f32"), vec![0u8; features]).unwrap();
+            for i in 0..frames {
+                std::fs::write(dir.join("frames").join(format!("{i:03}.png")), b"png").unwrap();
+            }
+        };
+        // Shape [4, 1, 1]: 16 bytes of features, 4 context frames.
+        write("whole", 16, 4);
+        write("short", 12, 4);
+        write("frameless", 16, 3);
+        write(".tmp-half-123", 16, 0);
+        let store = ClipStore::open(root.path(), "key", 1 << 20).unwrap();
+        let ids: Vec<String> = store.list().iter().map(|r| r.id.clone()).collect();
+        assert_eq!(ids, ["whole"]);
+        let left: Vec<String> = std::fs::read_dir(&clips)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(left, ["whole"], "the index and the directory disagree");
+        let mut damaged: Vec<String> = std::fs::read_dir(root.path().join("key/damaged"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        damaged.sort();
+        assert_eq!(damaged.len(), 2);
+        assert!(damaged[0].starts_with("frameless-") && damaged[1].starts_with("short-"));
     }
 
     #[test]

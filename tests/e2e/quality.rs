@@ -93,12 +93,9 @@ fn presets_prune_the_same_gaussians_everywhere_and_bad_options_are_400() {
         "fast keeps {kept} of {GAUSSIANS}"
     );
     assert!(fast.iter().all(|&n| n == kept), "{fast:?}");
-    // Balanced prunes less than fast (a lower floor keeps more).
+    // Balanced keyframes without pruning: every Gaussian.
     let balanced = counts(&decode(json!({"times": targets, "quality": "balanced"})))[0];
-    assert!(
-        balanced >= kept && balanced < GAUSSIANS,
-        "balanced keeps {balanced}, fast {kept}"
-    );
+    assert_eq!(balanced, GAUSSIANS);
     // An explicit knob overrides the preset's: floors of 0 keep every Gaussian.
     let all = counts(&decode(json!({
         "times": targets,

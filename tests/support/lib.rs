@@ -331,3 +331,205 @@ pub fn mixed_requests(id: &str) -> Vec<(String, serde_json::Value)> {
         })
         .collect()
 }
+
+/// A `c4g-server` process that a fault test controls: started on a store directory and address
+/// of the test's choosing (so that a restart finds the same store, and workers the same port),
+/// its log collected (and echoed to the test's stderr), killed with SIGKILL when asked or when
+/// dropped.
+pub struct ServerProcess {
+    child: Child,
+    /// Where it listens.
+    pub addr: SocketAddr,
+    log: std::sync::Arc<std::sync::Mutex<String>>,
+}
+
+impl Drop for ServerProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl ServerProcess {
+    /// Starts the server (default model, from the repository root) with `--store-dir store`,
+    /// `--listen listen` and `args`, with `env` set, once it prints its address; it may not be
+    /// ready yet (or ever: see [`wait_exit`](Self::wait_exit)).
+    pub fn spawn(store: &Path, listen: &str, args: &[&str], env: &[(&str, &str)]) -> Self {
+        let mut child = Command::new(binary("c4g-server"))
+            .current_dir(workspace())
+            .env_remove("C4G_MODEL")
+            .env_remove("C4G_API_KEY")
+            .env_remove("C4G_FAULT_PAUSE")
+            .env(
+                "RUST_LOG",
+                std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
+            )
+            .envs(env.iter().copied())
+            .args(["--listen", listen, "--store-dir"])
+            .arg(store)
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let log = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
+        let stderr = BufReader::new(child.stderr.take().unwrap());
+        let pid = child.id();
+        {
+            let log = log.clone();
+            std::thread::spawn(move || {
+                for line in stderr.lines().map_while(Result::ok) {
+                    eprintln!("[c4g-server {pid}] {line}");
+                    let mut log = log.lock().unwrap();
+                    log.push_str(&line);
+                    log.push('\n');
+                }
+            });
+        }
+        let mut stdout = BufReader::new(child.stdout.take().unwrap());
+        let mut line = String::new();
+        stdout.read_line(&mut line).unwrap();
+        // Drained, so that nothing the server prints later meets a closed pipe.
+        std::thread::spawn(move || std::io::copy(&mut stdout, &mut std::io::sink()));
+        let Some(addr) = line.trim().strip_prefix("listening on ") else {
+            let status = child.wait().unwrap();
+            std::thread::sleep(Duration::from_millis(200));
+            panic!(
+                "c4g-server did not start ({status}): {line:?}\n{}",
+                log.lock().unwrap()
+            );
+        };
+        ServerProcess {
+            addr: addr.parse().unwrap(),
+            child,
+            log,
+        }
+    }
+
+    /// [`spawn`](Self::spawn) without extra environment, then waits until it is ready.
+    pub fn start(store: &Path, listen: &str, args: &[&str]) -> Self {
+        let mut server = Self::spawn(store, listen, args, &[]);
+        server.wait_ready();
+        server
+    }
+
+    /// `http://addr`.
+    pub fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    /// `http://addr/path`.
+    pub fn at(&self, path: &str) -> String {
+        format!("http://{}{}", self.addr, path)
+    }
+
+    /// Waits until `/ready` answers 200; panics with the log if the process ends first.
+    pub fn wait_ready(&mut self) {
+        let client = reqwest::blocking::Client::new();
+        let deadline = Instant::now() + Duration::from_secs(120);
+        loop {
+            if let Ok(r) = client.get(self.at("/ready")).send()
+                && r.status().is_success()
+            {
+                return;
+            }
+            if let Some(status) = self.child.try_wait().unwrap() {
+                panic!(
+                    "c4g-server ended ({status}) before it was ready:\n{}",
+                    self.log()
+                );
+            }
+            assert!(Instant::now() < deadline, "the server never became ready");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// Everything the server logged so far.
+    pub fn log(&self) -> String {
+        self.log.lock().unwrap().clone()
+    }
+
+    /// Waits until the log holds `needle`; panics after `within`.
+    pub fn wait_for_log(&self, needle: &str, within: Duration) {
+        let deadline = Instant::now() + within;
+        while !self.log().contains(needle) {
+            assert!(
+                Instant::now() < deadline,
+                "the server never logged {needle:?}:\n{}",
+                self.log()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Waits up to `within` for the process to end by itself, and gives its exit status.
+    pub fn wait_exit(&mut self, within: Duration) -> std::process::ExitStatus {
+        let deadline = Instant::now() + within;
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                // The log thread reads what the process wrote last.
+                std::thread::sleep(Duration::from_millis(200));
+                return status;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "c4g-server is still running:\n{}",
+                self.log()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// True while the process runs.
+    pub fn alive(&mut self) -> bool {
+        self.child.try_wait().unwrap().is_none()
+    }
+
+    /// Kills the process with SIGKILL (no shutdown of any kind runs) and reaps it.
+    pub fn kill(mut self) {
+        self.child.kill().unwrap();
+        self.child.wait().unwrap();
+    }
+}
+
+/// The sum of every series of the Prometheus metric `name` in a `/metrics` text (0 when absent).
+pub fn metric(text: &str, name: &str) -> f64 {
+    text.lines()
+        .filter(|line| !line.starts_with('#'))
+        .filter_map(|line| {
+            let rest = line.strip_prefix(name)?;
+            if !(rest.starts_with('{') || rest.starts_with(' ')) {
+                return None;
+            }
+            line.rsplit(' ').next()?.parse::<f64>().ok()
+        })
+        .sum()
+}
+
+/// A multipart body of image frames with explicit timestamps, as raw bytes with `boundary`
+/// (for clients that send it by hand: in parts, slowly, or not at all).
+pub fn multipart_bytes(frames: &[PathBuf], times: &[f64], boundary: &str) -> Vec<u8> {
+    let mut body = Vec::new();
+    let stamps: Vec<String> = times.iter().map(f64::to_string).collect();
+    body.extend_from_slice(
+        format!(
+            "--{boundary}\r\nContent-Disposition: form-data; name=\"timestamps\"\r\n\r\n{}\r\n",
+            stamps.join(",")
+        )
+        .as_bytes(),
+    );
+    for path in frames {
+        let name = path.file_name().unwrap().to_string_lossy();
+        body.extend_from_slice(
+            format!(
+                "--{boundary}\r\nContent-Disposition: form-data; name=\"frame\"; \
+                 filename=\"{name}\"\r\nContent-Type: image/png\r\n\r\n"
+            )
+            .as_bytes(),
+        );
+        body.extend_from_slice(&std::fs::read(path).unwrap());
+        body.extend_from_slice(b"\r\n");
+    }
+    body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
+    body
+}

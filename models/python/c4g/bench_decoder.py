@@ -3,13 +3,18 @@
     python -m c4g.bench_decoder --config official --frames 4 16 --batch 1 4 [--profile DIR]
 
 Builds the model at `--config` with random weights (the cost does not depend on the values),
-exports the decoder graph as the export tool does (fused attention, the last layer's query rows
-only), and times one decoder call per (T, B) both ways, alternating ONNX Runtime and PyTorch so
-that a noisy machine slows both alike: the median of `--repeats` calls each, and their ratio.
-ONNX Runtime runs with the engine's session settings (CPU provider, no arena, one thread per core),
-PyTorch with as many threads. `--settings` times ONNX Runtime's session settings against each
-other instead (arena, thread spinning). `--profile` also writes ONNX Runtime's per-node profile of one call
-and prints the time per operator type, which is where the exact speed-ups are found.
+exports the decoder graphs as the export tool does (fused attention, the last layer's query rows
+only) in both decoder forms, and times one decoder call per (T, B) every way, call by call in turn
+so that a noisy machine slows all alike: the median of `--repeats` calls each, and each one's ratio
+to PyTorch eager (our mirror, the plain form: `C4G.decode_canonical`). The ways: ONNX Runtime on the
+plain decoder and on the precomputed one (`c4g.precomputed`; its context projection runs once per
+clip, before the timed calls, and is timed on its own), both with the engine's session settings
+(CPU provider, no arena, threads spinning, one thread per core), and the precomputed one again with
+`C4G_CPU_ARENA=true` and `C4G_INTRA_OP_SPINNING=false`; PyTorch with as many threads. `--forms`
+times fewer. `--settings` times ONNX Runtime's session settings against each other instead (arena,
+thread spinning; on the first of `--forms`). `--profile` also writes ONNX Runtime's per-node profile
+of one call per way and prints the time per operator type, which is where the exact speed-ups are
+found.
 
 The features are random, and the times are the reference normalisation of context frames 0..T-1
 for a target in the middle of the span.
@@ -32,7 +37,7 @@ import onnxruntime as ort
 import torch
 
 from .attention import fused_export
-from .export import DecoderGraph, _config, _export_graph, build_model
+from .export import DECODER_FORMS, _config, build_model, export_plain_decoder, export_precomputed_decoder
 
 
 def session_options(profile_dir: Path | None = None, arena: bool = False, spinning: bool = True) -> ort.SessionOptions:
@@ -76,15 +81,18 @@ SETTINGS = {
 }
 
 
-def compare_settings(path: Path, cfg, args) -> None:
+def compare_settings(path: Path, projection: Path | None, cfg, args) -> None:
     """One session per setting, timed call by call in turn (median of `--repeats` each)."""
     sessions = {
         name: ort.InferenceSession(str(path), session_options(None, arena, spinning), providers=["CPUExecutionProvider"])
         for name, (arena, spinning) in SETTINGS.items()
     }
+    project = None if projection is None else ort.InferenceSession(str(projection), session_options(), providers=["CPUExecutionProvider"])
     for frames in args.frames:
         for batch in args.batch:
             feeds = inputs(cfg, frames, batch)
+            if project is not None:
+                (feeds["context_projection"],) = project.run(None, {"features": feeds["features"]})
             for s in sessions.values():
                 s.run(None, feeds)
             times: dict[str, list[float]] = {name: [] for name in sessions}
@@ -96,20 +104,52 @@ def compare_settings(path: Path, cfg, args) -> None:
             print(f"T={frames} B={batch}: " + ", ".join(f"{k} {statistics.median(v):.2f} s" for k, v in times.items()), flush=True)
 
 
+# The ONNX Runtime ways the bench times: (name, decoder form, arena, spinning).
+WAYS = [
+    ("plain", "plain", False, True),
+    ("precomputed", "precomputed", False, True),
+    ("precomputed, arena on, spinning off", "precomputed", True, False),
+]
+
+
+def export_forms(model, forms: list[str], tmp: Path) -> dict[str, tuple[Path, Path | None]]:
+    """The decoder graph of each form (and the precomputed form's context projection graph)."""
+    paths = {}
+    with torch.no_grad(), fused_export(True):
+        for form in forms:
+            decoder = tmp / f"decoder-{form}.onnx"
+            if form == "plain":
+                export_plain_decoder(model, decoder)
+                paths[form] = (decoder, None)
+            else:
+                export_precomputed_decoder(model, decoder, tmp / "context_projection.onnx")
+                paths[form] = (decoder, tmp / "context_projection.onnx")
+    return paths
+
+
+def print_profile(path: Path, feeds: dict, args, arena: bool, spinning: bool) -> None:
+    args.profile.mkdir(parents=True, exist_ok=True)
+    prof = ort.InferenceSession(str(path), session_options(args.profile, arena, spinning), providers=["CPUExecutionProvider"])
+    prof.run(None, feeds)
+    prof.run(None, feeds)
+    ops = per_op(Path(prof.end_profiling()))
+    total = sum(ops.values())
+    print("  per operator (ms, 2 calls): " + ", ".join(f"{k} {v:.0f} ({v / total:.0%})" for k, v in list(ops.items())[:8]))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m c4g.bench_decoder", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", default="official")
     ap.add_argument("--frames", type=int, nargs="+", default=[4, 16])
     ap.add_argument("--batch", type=int, nargs="+", default=[1])
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--arena", action="store_true", help="ONNX Runtime's CPU arena on (C4G_CPU_ARENA=true)")
-    ap.add_argument("--no-spinning", action="store_true", help="intra-op threads do not spin (C4G_INTRA_OP_SPINNING=false)")
+    ap.add_argument("--forms", nargs="+", choices=DECODER_FORMS, default=["plain", "precomputed"], help="decoder forms to time")
     ap.add_argument(
         "--settings",
         action="store_true",
         help="instead of PyTorch, compare ONNX Runtime's session settings: the engine default, arena on, spinning off, both",
     )
-    ap.add_argument("--profile", type=Path, help="write an ONNX Runtime profile of one call per setting here")
+    ap.add_argument("--profile", type=Path, help="write an ONNX Runtime profile of one call per way here")
     ap.add_argument("--json", type=Path, help="also write the results as JSON")
     args = ap.parse_args(argv)
     threads = os.cpu_count() or 1
@@ -120,53 +160,62 @@ def main(argv: list[str] | None = None) -> int:
     print(f"model: {args.config}, {sum(p.numel() for p in model.parameters()):,} parameters ({time.perf_counter() - t0:.0f} s to build)", flush=True)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "decoder.onnx"
-        f = torch.zeros(2, cfg.tokens_per_frame, cfg.feature_width)
-        with torch.no_grad(), fused_export(True):
-            _export_graph(
-                DecoderGraph(model), (f, torch.zeros(2, 2), torch.zeros(2)), path,
-                {"features": {0: "T"}, "context_times": {0: "B", 1: "T"}, "target_times": {0: "B"}}, {"gaussians": {0: "B"}},
-            )  # fmt: skip
+        paths = export_forms(model, args.forms, Path(tmp))
         if args.settings:
             del model
-            compare_settings(path, cfg, args)
+            compare_settings(*paths[args.forms[0]], cfg, args)
             return 0
-        sess = ort.InferenceSession(str(path), session_options(None, args.arena, not args.no_spinning), providers=["CPUExecutionProvider"])
+        cpu = ["CPUExecutionProvider"]
+        ways = [w for w in WAYS if w[1] in args.forms]
+        sessions = {name: ort.InferenceSession(str(paths[form][0]), session_options(None, arena, spinning), providers=cpu) for name, form, arena, spinning in ways}
+        projection = paths.get("precomputed", (None, None))[1]
+        project = None if projection is None else ort.InferenceSession(str(projection), session_options(), providers=cpu)
         for frames in args.frames:
             for batch in args.batch:
                 feeds = inputs(cfg, frames, batch)
                 tensors = {k: torch.from_numpy(v) for k, v in feeds.items()}
+                row = {"frames": frames, "batch": batch}
+                form_feeds = {"plain": feeds}
+                if project is not None:
+                    t = time.perf_counter()
+                    (context_projection,) = project.run(None, {"features": feeds["features"]})
+                    row["context_projection_s"] = time.perf_counter() - t
+                    form_feeds["precomputed"] = {**feeds, "context_projection": context_projection}
+                times: dict[str, list[float]] = {name: [] for name in [*sessions, "pytorch"]}
+                outputs = {}
                 with torch.inference_mode():
-                    sess.run(None, feeds)  # warm-up (first-run allocations, prepacking)
-                    model.decode_canonical(*tensors.values())
-                    ort_times, torch_times = [], []
-                    for _ in range(args.repeats):
+                    # Warm-up (first-run allocations, prepacking), then the calls in turn.
+                    for _ in range(1 + args.repeats):
+                        for name, form, _, _ in ways:
+                            t = time.perf_counter()
+                            (outputs[name],) = sessions[name].run(None, form_feeds[form])
+                            times[name].append(time.perf_counter() - t)
                         t = time.perf_counter()
-                        (ours,) = sess.run(None, feeds)
-                        ort_times.append(time.perf_counter() - t)
-                        t = time.perf_counter()
-                        theirs = model.decode_canonical(*tensors.values()).numpy()
-                        torch_times.append(time.perf_counter() - t)
-                diff = float(np.abs(ours - theirs).max())
-                row = {
-                    "frames": frames, "batch": batch, "onnxruntime_s": statistics.median(ort_times),
-                    "pytorch_s": statistics.median(torch_times), "max_abs_diff": diff,
+                        outputs["pytorch"] = model.decode_canonical(*tensors.values()).numpy()
+                        times["pytorch"].append(time.perf_counter() - t)
+                pytorch_s = statistics.median(times["pytorch"][1:])
+                row["pytorch_s"] = pytorch_s
+                row["onnxruntime"] = {
+                    name: {
+                        "seconds": statistics.median(times[name][1:]),
+                        "ratio": statistics.median(times[name][1:]) / pytorch_s,
+                        "max_abs_diff": float(np.abs(outputs[name] - outputs["pytorch"]).max()),
+                    }
+                    for name in sessions
                 }  # fmt: skip
-                row["ratio"] = row["onnxruntime_s"] / row["pytorch_s"]
                 results.append(row)
-                print(
-                    f"T={frames:3d} B={batch}: onnxruntime {row['onnxruntime_s']:.3f} s ({row['onnxruntime_s'] / batch:.3f} s a target), "
-                    f"pytorch {row['pytorch_s']:.3f} s, ratio {row['ratio']:.2f}, outputs differ by {diff:.1e}",
-                    flush=True,
-                )
+                projected = f", context projection once {row['context_projection_s']:.3f} s" if "context_projection_s" in row else ""
+                print(f"T={frames:3d} B={batch}: pytorch {pytorch_s:.3f} s{projected}", flush=True)
+                for name, r in row["onnxruntime"].items():
+                    print(
+                        f"  onnxruntime {name}: {r['seconds']:.3f} s ({r['seconds'] / batch:.3f} s a target), "
+                        f"ratio {r['ratio']:.2f}, outputs differ by {r['max_abs_diff']:.1e}",
+                        flush=True,
+                    )
                 if args.profile:
-                    args.profile.mkdir(parents=True, exist_ok=True)
-                    prof = ort.InferenceSession(str(path), session_options(args.profile, args.arena, not args.no_spinning), providers=["CPUExecutionProvider"])
-                    prof.run(None, feeds)
-                    prof.run(None, feeds)
-                    ops = per_op(Path(prof.end_profiling()))
-                    total = sum(ops.values())
-                    print("  per operator (ms, 2 calls): " + ", ".join(f"{k} {v:.0f} ({v / total:.0%})" for k, v in list(ops.items())[:8]))
+                    for name, form, arena, spinning in ways:
+                        print(f"  profile of {name}:")
+                        print_profile(paths[form][0], form_feeds[form], args, arena, spinning)
     if args.json:
         args.json.write_text(json.dumps({"config": args.config, "threads": threads, "results": results}, indent=2) + "\n")
     return 0

@@ -44,8 +44,11 @@ class DecoderAttention(nn.Module):
         self.to_qkv = nn.Linear(dim, 3 * inner, bias=False)
         self.to_out = nn.Sequential(nn.Linear(inner, dim))
 
-    def forward(self, x: torch.Tensor, query_rows: int | None = None) -> torch.Tensor:
-        q, k, v = self.to_qkv(self.norm(x)).chunk(3, dim=-1)
+    def forward(self, x: torch.Tensor, query_rows: int | None = None, qkv: torch.Tensor | None = None) -> torch.Tensor:
+        """`qkv`, when given, is `to_qkv(norm(x))` computed another way (the precomputed form's first layer)."""
+        if qkv is None:
+            qkv = self.to_qkv(self.norm(x))
+        q, k, v = qkv.chunk(3, dim=-1)
         if query_rows is not None:
             q = q[:, -query_rows:]
         return self.to_out(attention(q, k, v, self.heads, self.head_dim))
@@ -81,15 +84,18 @@ class GaussianDecoder(nn.Module):
         )
         self.norm = nn.LayerNorm(cfg.decoder_dim)
 
-    def forward(self, x: torch.Tensor, query_rows: int | None = None) -> torch.Tensor:
-        """x [B, L, D] → [B, L, D], or [B, query_rows, D] when `query_rows` is given."""
+    def forward(self, x: torch.Tensor, query_rows: int | None = None, first_qkv: torch.Tensor | None = None) -> torch.Tensor:
+        """x [B, L, D] → [B, L, D], or [B, query_rows, D] when `query_rows` is given. `first_qkv`, when
+        given, is the first layer's qkv projection [B, L, 3 inner], computed by the caller
+        (`c4g.precomputed`)."""
         last = len(self.layers) - 1
         for i, (attn, ff) in enumerate(self.layers):
             rows = query_rows if i == last else None
+            qkv = first_qkv if i == 0 else None
             if rows is not None:
-                x = x[:, -rows:] + attn(x, rows)
+                x = x[:, -rows:] + attn(x, rows, qkv)
             else:
-                x = x + attn(x)
+                x = x + attn(x, qkv=qkv)
             x = x + ff(x)
         return self.norm(x)
 

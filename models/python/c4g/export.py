@@ -3,12 +3,17 @@
     python -m c4g.export --checkpoint c4g.ckpt --config official --out models/c4g-official
     python -m c4g.export --random-init --seed 0 --config official --out /tmp/c4g-official-random
     python -m c4g.export --random-init --config official --precision int8 --out /tmp/c4g-official-int8
+    python -m c4g.export --random-init --config official --decoder-form plain --out /tmp/c4g-official-plain
 
 The package contract (graph inputs / outputs, canonical Gaussian layout, model.json) is docs/package.md.
 Graphs are exported at a fixed input size, so the DINOv2 positional embedding (bicubic, antialiased
 resize of the 37 x 37 grid) and the RoPE tables are precomputed constants; T and B stay dynamic.
 The conversion to the canonical layout happens inside the decoder graph, and the last decoder layer
-computes only the query rows.
+computes only the query rows. In the precomputed decoder form (the default from decoder width 512
+up, where it is the faster) the package also holds `context_projection.onnx`, the first decoder
+layer's qkv projection of the context features, which the engine runs once per clip; the decoder
+graph takes its result instead of recomputing it for every target (`c4g.precomputed`: the same
+result up to float rounding).
 """
 
 from __future__ import annotations
@@ -29,12 +34,19 @@ from .config import PRESETS, C4GConfig
 from .decoder import to_canonical
 from .init import random_init
 from .model import C4G
+from .precomputed import ContextProjection, PrecomputedDecoder
 from .raster_reference import FOOTPRINTS
 from .time_policy import POLICIES
 
 IR_VERSION = 10  # ONNX Runtime 1.31 reads IR <= 13; 10 is what opset 18 needs.
 OPSET = 18
 TWO_GB = 2**31
+DECODER_FORMS = ("precomputed", "plain")
+# From this decoder width up the precomputed form is the faster one: the projection it saves grows
+# with the width squared, the element-wise work it adds with the width. Measured by bench_decoder
+# (docs/benchmarks.md): at width 128 (c4g-tiny) it is about 25 % slower, at 512 as fast or faster,
+# at 2048 (the official model) faster.
+PRECOMPUTED_FROM_WIDTH = 512
 GAUSSIAN_LAYOUT = [
     "x", "y", "z", "scale_x", "scale_y", "scale_z", "rot_w", "rot_x", "rot_y", "rot_z", "opacity", "r", "g", "b",
 ]  # fmt: skip
@@ -63,6 +75,27 @@ class DecoderGraph(nn.Module):
 
     def forward(self, features, context_times, target_times) -> torch.Tensor:
         return self.model.decode_canonical(features, context_times, target_times)
+
+
+class PrecomputedDecoderGraph(nn.Module):
+    """The decoder in the precomputed form: the context projection is an input, the query
+    constants are baked in."""
+
+    def __init__(self, model: C4G):
+        super().__init__()
+        self.decoder = PrecomputedDecoder(model)
+
+    def forward(self, features, context_projection, context_times, target_times) -> torch.Tensor:
+        return self.decoder.decode_canonical(features, context_projection, context_times, target_times)
+
+
+class ContextProjectionGraph(nn.Module):
+    def __init__(self, model: C4G):
+        super().__init__()
+        self.projection = ContextProjection(model)
+
+    def forward(self, features) -> torch.Tensor:
+        return self.projection(features)
 
 
 class FeatureDecoderGraph(nn.Module):
@@ -103,6 +136,40 @@ def _export_graph(module: nn.Module, args: tuple, path: Path, inputs: dict[str, 
     onnx.checker.check_model(str(path))
 
 
+DECODER_INPUTS = {"features": {0: "T"}, "context_times": {0: "B", 1: "T"}, "target_times": {0: "B"}}
+
+
+def export_plain_decoder(model: C4G, path: Path) -> None:
+    """decoder.onnx in the plain form: features + times → gaussians."""
+    cfg = model.cfg
+    features = torch.zeros(2, cfg.tokens_per_frame, cfg.feature_width)
+    with torch.no_grad():
+        _export_graph(DecoderGraph(model), (features, torch.zeros(2, 2), torch.zeros(2)), path, DECODER_INPUTS, {"gaussians": {0: "B"}})
+
+
+def export_precomputed_decoder(model: C4G, decoder: Path, context_projection: Path) -> None:
+    """The precomputed form: context_projection.onnx (features → context_projection) and a decoder
+    that takes it (features + context_projection + times → gaussians)."""
+    cfg = model.cfg
+    features = torch.zeros(2, cfg.tokens_per_frame, cfg.feature_width)
+    with torch.no_grad():
+        projection = ContextProjectionGraph(model)
+        _export_graph(projection, (features,), context_projection, {"features": {0: "T"}}, {"context_projection": {0: "T"}})
+        inputs = {"features": {0: "T"}, "context_projection": {0: "T"}, "context_times": {0: "B", 1: "T"}, "target_times": {0: "B"}}
+        _export_graph(
+            PrecomputedDecoderGraph(model), (features, projection(features), torch.zeros(2, 2), torch.zeros(2)), decoder, inputs, {"gaussians": {0: "B"}}
+        )
+
+
+def chosen_decoder_form(form: str, cfg: C4GConfig) -> str:
+    """`form`, with "auto" resolved: precomputed from `PRECOMPUTED_FROM_WIDTH` up, else plain."""
+    if form == "auto":
+        return "precomputed" if cfg.decoder_dim >= PRECOMPUTED_FROM_WIDTH else "plain"
+    if form not in DECODER_FORMS:
+        raise ValueError(f"decoder form {form!r} is not one of {DECODER_FORMS} or 'auto'")
+    return form
+
+
 def declared_time_policy(training: dict | None) -> str:
     """The `time_policy` a package declares: the one its training recipe names (our own models), else
     frame-step (the official weights, trained on integer frame indices, where frame-step is the reference)."""
@@ -132,13 +199,18 @@ def export_package(
     description: str = "",
     fused_attention: bool = True,
     training: dict | None = None,
+    decoder_form: str = "auto",
 ) -> dict:
     """Write the package for `model` into `out` and return its manifest.
 
     `fused_attention` exports attention as ONNX Runtime's MultiHeadAttention (flash attention on the
-    CPU, fused kernels on CUDA); without it, as plain MatMul / Softmax (any ONNX runtime)."""
+    CPU, fused kernels on CUDA); without it, as plain MatMul / Softmax (any ONNX runtime).
+    `decoder_form` "precomputed" adds `context_projection.onnx` and a decoder that takes its output
+    (docs/package.md); "plain" writes a decoder that takes the features alone; "auto" picks the
+    faster for the model's size (`chosen_decoder_form`)."""
     model = model.eval()
     cfg = model.cfg
+    decoder_form = chosen_decoder_form(decoder_form, cfg)
     out.mkdir(parents=True, exist_ok=True)
     t, b, p, c = 2, 2, cfg.tokens_per_frame, cfg.feature_width
     frames = torch.zeros(t, 3, cfg.image_size, cfg.image_size)
@@ -146,16 +218,14 @@ def export_package(
     ctx = torch.zeros(b, t)
     tgt = torch.zeros(b)
     files = {"encoder": "encoder.onnx", "decoder": "decoder.onnx"}
-    dyn_features = {0: "T"}
     with torch.no_grad(), fused_export(fused_attention):
         _export_graph(EncoderGraph(model), (frames,), out / files["encoder"], {"frames": {0: "T"}}, {"features": {0: "T"}})
-        _export_graph(
-            DecoderGraph(model),
-            (features, ctx, tgt),
-            out / files["decoder"],
-            {"features": dyn_features, "context_times": {0: "B", 1: "T"}, "target_times": {0: "B"}},
-            {"gaussians": {0: "B"}},
-        )
+        if decoder_form == "precomputed":
+            files["context_projection"] = "context_projection.onnx"
+            export_precomputed_decoder(model, out / files["decoder"], out / files["context_projection"])
+        else:
+            export_plain_decoder(model, out / files["decoder"])
+            (out / "context_projection.onnx").unlink(missing_ok=True)
         if model.feature_decoder is not None:
             files["feature_decoder"] = "feature_decoder.onnx"
             maps = torch.zeros(t, p, cfg.feature_dim)
@@ -163,7 +233,7 @@ def export_package(
                 FeatureDecoderGraph(model),
                 (features, ctx, tgt, maps),
                 out / files["feature_decoder"],
-                {"features": dyn_features, "context_times": {0: "B", 1: "T"}, "target_times": {0: "B"}, "context_feature_maps": {0: "T"}},
+                {**DECODER_INPUTS, "context_feature_maps": {0: "T"}},
                 {"gaussian_features": {0: "B"}},
             )
         elif (out / "feature_decoder.onnx").exists():
@@ -191,6 +261,7 @@ def export_package(
         "time_policy": declared_time_policy(training),
         "precision": "f32",
         "attention": "fused" if fused_attention else "plain",
+        "decoder_form": decoder_form,
         "rasterizer": {"footprint": declared_footprint(training)},
         "files": files,
         "parameters": sum(v.numel() for v in model.state_dict().values()),
@@ -243,6 +314,14 @@ def main(argv: list[str] | None = None) -> int:
         help="fused: ONNX Runtime's MultiHeadAttention (flash attention on CPU); plain: MatMul/Softmax",
     )
     ap.add_argument(
+        "--decoder-form",
+        choices=["auto", *DECODER_FORMS],
+        default="auto",
+        help="precomputed: the first decoder layer's projection of the context features runs once per clip "
+        f"(context_projection.onnx); plain: the decoder takes the features alone (docs/package.md); auto: "
+        f"precomputed from decoder width {PRECOMPUTED_FROM_WIDTH} up, where it is the faster",
+    )
+    ap.add_argument(
         "--precision",
         choices=["f32", "f16", "int8"],
         default="f32",
@@ -264,8 +343,9 @@ def main(argv: list[str] | None = None) -> int:
     name = args.name or args.out.name
     training = json.loads(args.recipe.read_text()) if args.recipe else None
     manifest = export_package(
-        model, args.out, name, args.version, provenance, args.description, fused_attention=args.attention == "fused", training=training
-    )
+        model, args.out, name, args.version, provenance, args.description,
+        fused_attention=args.attention == "fused", training=training, decoder_form=args.decoder_form,
+    )  # fmt: skip
     if args.precision != "f32":
         from .precision import convert_package
 

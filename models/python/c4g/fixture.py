@@ -1,13 +1,20 @@
-"""Builds the committed test fixture `models/fixtures/c4g-small/`:
+"""Builds the committed test fixtures.
 
+`models/fixtures/c4g-small/`:
 - the package: the reduced official reference checkpoint (`../shared/reference/c4g-official-small/`)
-  exported with our export tool, plus a feature-lifting decoder with seeded random weights (the
-  official checkpoint has none);
+  exported with our export tool (plain decoder form), plus a feature-lifting decoder with seeded
+  random weights (the official checkpoint has none);
 - `reference.safetensors` + `reference.json`: inputs and outputs of the PyTorch mirror on real frames
   (the bedroom clip, preprocessed with Pillow), for T in {1, 4, 16}, targets at both ends of the span
   and between frames, under both time policies.
 
+`models/fixtures/decoder-forms/` (`--decoder-forms`): one very small seeded random model (official
+layout, every width shrunk) exported in both decoder forms, `plain/` and `precomputed/`, with the
+PyTorch mirror's outputs on seeded frames, so that a test can hold both forms to each other and to
+the mirror.
+
     python -m c4g.fixture --shared ../shared --out models/fixtures/c4g-small
+    python -m c4g.fixture --decoder-forms --out models/fixtures/decoder-forms
 """
 
 from __future__ import annotations
@@ -55,7 +62,9 @@ def build(shared: Path, out: Path) -> None:
         "source": "shared/reference/c4g-official-small/c4g_official_small.ckpt (random weights, reduced sizes, official layout)",
         "feature_decoder": f"random init, seed {FEATURE_SEED} (the checkpoint has none)",
     }
-    export_package(model, out, "c4g-small", "0.1.0", provenance, "Test fixture: the reduced official reference model.")
+    export_package(
+        model, out, "c4g-small", "0.1.0", provenance, "Test fixture: the reduced official reference model.", decoder_form="plain"
+    )
 
     n_frames = max(c[1] for c in CASES)
     paths = sorted((shared / "data/bedroom/frames").glob("*.jpg"))[: n_frames * FRAME_STRIDE : FRAME_STRIDE]
@@ -90,13 +99,71 @@ def build(shared: Path, out: Path) -> None:
     (out / "reference.json").write_text(json.dumps(meta, indent=2) + "\n")
 
 
+# The decoder-forms fixture: small enough to commit twice over (well under 2 MB in all).
+FORMS_CONFIG = C4GConfig(
+    dino_dim=16, dino_depth=1, dino_heads=2, patch=7, pos_embed_grid=4,
+    aggregator_dim=16, aggregator_depth=1, aggregator_heads=2,
+    decoder_dim=32, decoder_heads=2, decoder_head_dim=16, decoder_mlp=64, decoder_depth=2,
+    queries=32, time_dim=16, image_size=28, feature_dim=4,
+)  # fmt: skip
+FORMS_SEED = 5
+# (name, context times in seconds, target times), decoded under the stable policy.
+FORMS_CASES = [
+    ("T1", [0.0], [0.0, 0.0]),
+    ("T4", [0.0, 0.5, 1.0, 2.0], [0.0, 0.25, 1.0, 1.7, 2.0]),
+]
+
+
+def build_decoder_forms(out: Path) -> None:
+    model = C4G(FORMS_CONFIG)
+    random_init(model, seed=FORMS_SEED)
+    model.eval()
+    provenance = {"kind": "random-init", "seed": FORMS_SEED}
+    for form in ("plain", "precomputed"):
+        export_package(
+            model, out / form, f"decoder-forms-{form}", "0.1.0", provenance,
+            f"Test fixture: a very small random model, {form} decoder form.", decoder_form=form,
+        )  # fmt: skip
+    cfg = FORMS_CONFIG
+    rng = np.random.default_rng(FORMS_SEED)
+    n_frames = max(len(c[1]) for c in FORMS_CASES)
+    frames = rng.uniform(-1.0, 1.0, (n_frames, 3, cfg.image_size, cfg.image_size)).astype(np.float32)
+    maps = rng.standard_normal((n_frames, cfg.tokens_per_frame, cfg.feature_dim)).astype(np.float32)
+    tensors = {"frames": frames, "feature_maps": maps}
+    index = []
+    with torch.no_grad():
+        for name, times, targets in FORMS_CASES:
+            t = len(times)
+            features = model.encode(torch.from_numpy(frames[:t]))
+            ctx, tgt = (torch.from_numpy(a) for a in normalise_batch(times, targets, "stable"))
+            tensors[f"{name}/features"] = features.numpy()
+            tensors[f"{name}/gaussians"] = model.decode_canonical(features, ctx, tgt).numpy()
+            tensors[f"{name}/gaussian_features"] = model.decode_features(features, ctx, tgt, torch.from_numpy(maps[:t])).numpy()
+            index.append({"case": name, "frames": t, "times": times, "targets": targets, "policy": "stable"})
+    save_file({k: np.ascontiguousarray(v) for k, v in tensors.items()}, str(out / "reference.safetensors"))
+    meta = {
+        "about": "One seeded random model (c4g.fixture FORMS_CONFIG) exported as plain/ and precomputed/, and the PyTorch mirror's outputs; made by c4g.fixture --decoder-forms.",
+        "frames": "frames [T, 3, H, W]: seeded uniform noise in [-1, 1], the encoder's input; case k uses the first T",
+        "feature_maps": "feature_maps [T, P, F]: seeded normal noise, the 2D features lifted by feature_decoder.onnx",
+        "outputs": "<case>/features [T, P, C]; <case>/gaussians [B, N, 14] canonical layout; <case>/gaussian_features [B, N, F]",
+        "cases": index,
+    }
+    (out / "reference.json").write_text(json.dumps(meta, indent=2) + "\n")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shared", type=Path, default=Path("../shared"))
-    ap.add_argument("--out", type=Path, default=Path("models/fixtures/c4g-small"))
+    ap.add_argument("--decoder-forms", action="store_true", help="build the decoder-forms fixture instead of c4g-small")
+    ap.add_argument("--out", type=Path, default=None, help="default: models/fixtures/c4g-small (or decoder-forms)")
     args = ap.parse_args()
-    build(args.shared, args.out)
-    print(f"wrote {args.out}")
+    if args.decoder_forms:
+        out = args.out or Path("models/fixtures/decoder-forms")
+        build_decoder_forms(out)
+    else:
+        out = args.out or Path("models/fixtures/c4g-small")
+        build(args.shared, out)
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -47,15 +47,21 @@ class C4G(nn.Module):
         return self.backbone.aggregator(frames, **precomputed)
 
     # -- decoder -----------------------------------------------------------------------------------
+    def time_embeddings(self, context_times: torch.Tensor, target_times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The time MLP's embeddings of the context times [B, T, D] and of the target times [B, D]."""
+        return self.time_mlp(self.time_embedding(context_times)), self.time_mlp(self.time_embedding(target_times))
+
     def time_conditioned_tokens(
         self, features: torch.Tensor, context_times: torch.Tensor, target_times: torch.Tensor
     ) -> torch.Tensor:
         """[context tokens + their frame's time embedding ; queries + the target's] → [B, T*P + N, D]."""
+        return self.tokens_with_embeddings(features, *self.time_embeddings(context_times, target_times))
+
+    def tokens_with_embeddings(self, features: torch.Tensor, context_emb: torch.Tensor, target_emb: torch.Tensor) -> torch.Tensor:
+        """`time_conditioned_tokens` from the embeddings `time_embeddings` returns."""
         t, p, d = features.shape
-        b = target_times.shape[0]
-        context_emb = self.time_mlp(self.time_embedding(context_times))  # [B, T, D]
+        b = target_emb.shape[0]
         context = (features[None] + context_emb[:, :, None, :]).reshape(b, t * p, d)
-        target_emb = self.time_mlp(self.time_embedding(target_times))  # [B, D]
         queries = self.gaussian_tokens[None] + target_emb[:, None, :]
         return torch.cat((context, queries), dim=1)
 

@@ -3,13 +3,14 @@
 
 use axum::Json;
 use axum::body::Body;
-use axum::extract::{FromRequest, Multipart, Path, Request, State};
+use axum::extract::{FromRequest, Multipart, Request, State};
 use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use bytes::{Bytes, BytesMut};
 use http_body_util::{BodyExt, LengthLimitError, Limited};
 use serde_json::{Value, json};
 
+use super::json::{ClipId, FrameIndex, query_pairs};
 use crate::intake::{IntakeOptions, Media, MediaKind};
 use crate::store::ClipRecord;
 use crate::{AppState, ServiceError};
@@ -141,20 +142,6 @@ async fn read_multipart(
     }
 }
 
-fn query_pairs(query: Option<&str>) -> Result<Vec<(String, String)>, ServiceError> {
-    serde_urlencoded_pairs(query.unwrap_or(""))
-}
-
-fn serde_urlencoded_pairs(query: &str) -> Result<Vec<(String, String)>, ServiceError> {
-    axum::extract::Query::<Vec<(String, String)>>::try_from_uri(
-        &format!("/?{query}")
-            .parse()
-            .map_err(|_| ServiceError::invalid("the query string is malformed"))?,
-    )
-    .map(|q| q.0)
-    .map_err(|e| ServiceError::invalid(format!("the query string is malformed: {e}")))
-}
-
 /// Upload options from query or multipart fields, every value checked.
 fn parse_options(fields: &[(String, String)]) -> Result<IntakeOptions, ServiceError> {
     fn number<T: std::str::FromStr>(name: &str, value: &str) -> Result<T, ServiceError> {
@@ -171,15 +158,7 @@ fn parse_options(fields: &[(String, String)]) -> Result<IntakeOptions, ServiceEr
             "stride" => options.stride = Some(number(name, value)?),
             "start" => options.start = Some(number(name, value)?),
             "end" => options.end = Some(number(name, value)?),
-            "timestamps" => {
-                let list = value.trim().trim_start_matches('[').trim_end_matches(']');
-                options.timestamps = Some(
-                    list.split(',')
-                        .filter(|s| !s.trim().is_empty())
-                        .map(|s| number(name, s))
-                        .collect::<Result<_, _>>()?,
-                );
-            }
+            "timestamps" => options.timestamps = Some(timestamps(value)?),
             other => {
                 return Err(ServiceError::invalid(format!(
                     "unknown upload option `{other}`: use fps, timestamps, max_frames, stride, \
@@ -189,6 +168,54 @@ fn parse_options(fields: &[(String, String)]) -> Result<IntakeOptions, ServiceEr
         }
     }
     Ok(options)
+}
+
+/// `timestamps`: comma-separated decimal numbers (`0,0.1,0.25`, spaces allowed around the
+/// commas), as `openapi.json`'s pattern states.
+fn timestamps(value: &str) -> Result<Vec<f64>, ServiceError> {
+    value
+        .split(',')
+        .map(|item| {
+            let item = item.trim_matches(' ');
+            match item.parse::<f64>() {
+                Ok(t) if !t.is_finite() => Err(ServiceError::invalid(format!(
+                    "timestamps must be finite, got {item}"
+                ))),
+                Ok(t) if is_decimal(item) => Ok(t),
+                _ => Err(ServiceError::invalid(format!(
+                    "timestamps must be comma-separated decimal numbers of seconds (0,0.1,0.25), \
+                     got {item:?}"
+                ))),
+            }
+        })
+        .collect()
+}
+
+/// `-?digits(.digits)?(e[+-]?d{1,2})?`: a number as JSON writes it (leading zeros allowed), its
+/// exponent short enough that it is always finite.
+fn is_decimal(text: &str) -> bool {
+    fn digits(s: &str) -> (&str, bool) {
+        let end = s.find(|c: char| !c.is_ascii_digit()).unwrap_or(s.len());
+        (&s[end..], end > 0)
+    }
+    let (rest, whole) = digits(text.strip_prefix('-').unwrap_or(text));
+    if !whole {
+        return false;
+    }
+    let rest = match rest.strip_prefix('.') {
+        Some(fraction) => match digits(fraction) {
+            (rest, true) => rest,
+            _ => return false,
+        },
+        None => rest,
+    };
+    match rest.strip_prefix(['e', 'E']) {
+        Some(exponent) => {
+            let exponent = exponent.strip_prefix(['+', '-']).unwrap_or(exponent);
+            matches!(digits(exponent), ("", true)) && exponent.len() <= 2
+        }
+        None => rest.is_empty(),
+    }
 }
 
 pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ServiceError> {
@@ -204,7 +231,7 @@ pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ServiceE
 
 pub async fn get(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    ClipId(id): ClipId,
 ) -> Result<Json<Value>, ServiceError> {
     let record = state.service()?.store.get(&id)?;
     Ok(Json(clip_json(&record, None)))
@@ -212,7 +239,7 @@ pub async fn get(
 
 pub async fn delete(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    ClipId(id): ClipId,
 ) -> Result<StatusCode, ServiceError> {
     state.service()?.delete(&id)?;
     Ok(StatusCode::NO_CONTENT)
@@ -220,7 +247,8 @@ pub async fn delete(
 
 pub async fn frame(
     State(state): State<AppState>,
-    Path((id, index)): Path<(String, usize)>,
+    ClipId(id): ClipId,
+    FrameIndex(index): FrameIndex,
 ) -> Result<Response, ServiceError> {
     let png = state.service()?.context_frame_png(&id, index)?;
     Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response())
@@ -249,6 +277,33 @@ mod tests {
         assert_eq!(options.max_frames, Some(3));
         assert!(parse_options(&pairs(&[("fsp", "3")])).is_err());
         assert!(parse_options(&pairs(&[("fps", "fast")])).is_err());
-        assert!(serde_urlencoded_pairs("fps=10&start=0.5").unwrap().len() == 2);
+        assert!(query_pairs(Some("fps=10&start=0.5")).unwrap().len() == 2);
+    }
+
+    #[test]
+    fn timestamps_are_comma_separated_decimals_as_the_contract_states() {
+        assert_eq!(timestamps("0").unwrap(), vec![0.0]);
+        assert_eq!(
+            timestamps(" 0 ,1e-3, -2.5E+1 ").unwrap(),
+            vec![0.0, 0.001, -25.0]
+        );
+        for bad in [
+            "", "0,", ",0", "0,,1", "[0,1]", "+1", "1.", ".5", "0x1", "1e", "0;1", "\t1", "1e400",
+        ] {
+            assert!(timestamps(bad).is_err(), "{bad:?}");
+        }
+        assert!(
+            timestamps("0,NaN")
+                .unwrap_err()
+                .to_string()
+                .contains("timestamps must be finite")
+        );
+        assert!(
+            timestamps("inf")
+                .unwrap_err()
+                .to_string()
+                .contains("must be finite")
+        );
+        assert_eq!(timestamps("1e99").unwrap(), vec![1e99]);
     }
 }

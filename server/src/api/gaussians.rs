@@ -2,13 +2,14 @@
 //! binary format, `.ply` or `.splat`.
 
 use axum::Json;
-use axum::extract::{Path, State};
+use axum::extract::State;
 use axum::http::{HeaderMap, header};
 use axum::response::{IntoResponse, Response};
 use c4g_renderer::formats::{ply, splat};
 use serde::Deserialize;
+use serde_json::Value;
 
-use super::json::JsonBody;
+use super::json::{self, ClipId, JsonBody};
 use crate::keyframes::KeyframesSpec;
 use crate::quality::{Preset, PruneSpec, QualitySpec};
 use crate::wire::{self, Precision};
@@ -55,11 +56,13 @@ impl GaussianFormat {
 
 pub async fn decode(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    ClipId(id): ClipId,
     headers: HeaderMap,
-    JsonBody(request): JsonBody<GaussiansRequest>,
+    JsonBody(body): JsonBody<Value>,
 ) -> Result<Response, ServiceError> {
     let service = state.service()?;
+    json::check_body(&body, service.limits.max_times)?;
+    let request: GaussiansRequest = json::typed(body)?;
     let times = match (request.t, request.times) {
         (Some(t), None) => vec![t],
         (None, Some(times)) => times,

@@ -5,15 +5,14 @@
 use std::convert::Infallible;
 
 use axum::Json;
-use axum::extract::{Path, Query, State};
+use axum::extract::{RawQuery, State};
 use axum::http::{StatusCode, header};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use futures_util::Stream;
-use serde::Deserialize;
 use serde_json::{Value, json};
 
-use super::json::JsonBody;
+use super::json::{self, ClipId, JobId, JsonBody};
 use crate::image_formats::encode_mp4;
 use crate::jobs::JobState;
 use crate::refine::RefineRequest;
@@ -21,10 +20,13 @@ use crate::{AppState, ServiceError};
 
 pub async fn submit(
     State(state): State<AppState>,
-    Path(clip_id): Path<String>,
-    JsonBody(request): JsonBody<RefineRequest>,
+    ClipId(clip_id): ClipId,
+    JsonBody(body): JsonBody<Value>,
 ) -> Result<Response, ServiceError> {
     let service = state.service()?;
+    json::check_body(&body, service.limits.max_times)?;
+    let request: RefineRequest = json::typed(body)?;
+    check(&request, service.limits.max_context_frames)?;
     request.validate(service, &clip_id)?;
     let stored = serde_json::to_value(&request)
         .map_err(|e| ServiceError::Internal(format!("cannot store the request: {e}")))?;
@@ -38,20 +40,37 @@ pub async fn submit(
         .into_response())
 }
 
+/// What `openapi.json` states of a refinement request that neither [`json::check_body`] nor
+/// [`RefineRequest::validate`] checks: a positive token count, and no more context frames than
+/// a clip can have.
+fn check(request: &RefineRequest, max_context_frames: usize) -> Result<(), ServiceError> {
+    if request.text_tokens == Some(0) {
+        return Err(ServiceError::invalid("text_tokens must be at least 1"));
+    }
+    if let Some(n) = request.context_frames
+        && n > max_context_frames
+    {
+        return Err(ServiceError::invalid(format!(
+            "context_frames must be at most {max_context_frames} (C4G_MAX_CONTEXT_FRAMES), got {n}"
+        )));
+    }
+    Ok(())
+}
+
 pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ServiceError> {
     Ok(Json(json!({ "jobs": state.service()?.jobs.list() })))
 }
 
 pub async fn get(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    JobId(id): JobId,
 ) -> Result<Json<Value>, ServiceError> {
     Ok(Json(json!(state.service()?.jobs.get(&id)?)))
 }
 
 pub async fn cancel(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    JobId(id): JobId,
 ) -> Result<Json<Value>, ServiceError> {
     Ok(Json(json!(state.service()?.jobs.cancel(&id)?)))
 }
@@ -60,7 +79,7 @@ pub async fn cancel(
 /// state.
 pub async fn events(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    JobId(id): JobId,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ServiceError> {
     let mut updates = state.service()?.jobs.subscribe(&id)?;
     let stream = async_stream(move |tx| async move {
@@ -92,16 +111,27 @@ where
     tokio_stream::wrappers::ReceiverStream::new(rx)
 }
 
-#[derive(Debug, Deserialize)]
-pub struct ResultQuery {
-    frame: Option<usize>,
+/// `?frame=k`: one refined frame; other query parameters are ignored.
+fn result_frame(query: Option<&str>) -> Result<Option<usize>, ServiceError> {
+    let mut frame = None;
+    for (name, value) in json::query_pairs(query)? {
+        if name == "frame" {
+            frame = Some(json::decimal(&value).ok_or_else(|| {
+                ServiceError::invalid(format!(
+                    "frame must be a refined frame's index (0, 1, ...), got {value:?}"
+                ))
+            })?);
+        }
+    }
+    Ok(frame)
 }
 
 pub async fn result(
     State(state): State<AppState>,
-    Path(id): Path<String>,
-    Query(query): Query<ResultQuery>,
+    JobId(id): JobId,
+    RawQuery(query): RawQuery,
 ) -> Result<Response, ServiceError> {
+    let frame = result_frame(query.as_deref())?;
     let service = state.service()?.clone();
     let record = service.jobs.get(&id)?;
     if record.state != JobState::Done {
@@ -111,7 +141,7 @@ pub async fn result(
         )));
     }
     let dir = service.jobs.result_dir(&id);
-    if let Some(k) = query.frame {
+    if let Some(k) = frame {
         if k >= record.result_frames {
             return Err(ServiceError::NotFound(format!(
                 "job {id} has {} refined frames (0..{})",

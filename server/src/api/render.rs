@@ -1,22 +1,26 @@
 //! `POST /v1/clips/{id}/render`: one camera at one time (PNG, raw depth or alpha), or a camera
 //! trajectory over a time range (MP4).
 
-use axum::extract::{Path, State};
+use axum::extract::State;
 use axum::http::{HeaderName, HeaderValue, header};
 use axum::response::{IntoResponse, Response};
 use c4g_renderer::Trajectory;
 use serde::Deserialize;
+use serde_json::Value;
 
-use super::json::JsonBody;
+use super::json::{self, ClipId, JsonBody};
 use crate::camera::CameraSpec;
 use crate::image_formats::{ImageFormat, encode_image, encode_mp4, to_rgb8};
 use crate::keyframes::KeyframesSpec;
 use crate::quality::{Preset, PruneSpec, QualitySpec};
-use crate::service::{PathRequest, ViewRequest};
+use crate::service::{DEFAULT_PATH_FRAMES, PathRequest, ViewRequest};
 use crate::{AppState, ServiceError};
 
 /// Frame rate of trajectory videos when a request does not say.
 const DEFAULT_VIDEO_FPS: f64 = 12.0;
+
+/// The frame rates a trajectory video may have.
+const VIDEO_FPS: std::ops::RangeInclusive<f64> = 0.01..=240.0;
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -45,10 +49,12 @@ pub struct RenderRequest {
 
 pub async fn render(
     State(state): State<AppState>,
-    Path(id): Path<String>,
-    JsonBody(request): JsonBody<RenderRequest>,
+    ClipId(id): ClipId,
+    JsonBody(body): JsonBody<Value>,
 ) -> Result<Response, ServiceError> {
     let service = state.service()?.clone();
+    json::check_body(&body, service.limits.max_times)?;
+    let request: RenderRequest = json::typed(body)?;
     let quality = QualitySpec {
         preset: request.quality,
         keyframes: request.keyframes,
@@ -98,16 +104,25 @@ pub async fn render(
         ));
     }
     let fps = request.fps.unwrap_or(DEFAULT_VIDEO_FPS);
-    if !(fps.is_finite() && fps > 0.0 && fps <= 240.0) {
+    if !VIDEO_FPS.contains(&fps) {
         return Err(ServiceError::invalid(format!(
-            "fps must be in (0, 240], got {fps}"
+            "fps must be between {} and {}, got {fps}",
+            VIDEO_FPS.start(),
+            VIDEO_FPS.end()
         )));
     }
+    // The default frame count, within C4G_MAX_TIMES (explicit cameras are their own count).
+    let frames = request.frames.or_else(|| {
+        request
+            .trajectory
+            .as_ref()
+            .map(|_| DEFAULT_PATH_FRAMES.min(service.limits.max_times))
+    });
     let path = PathRequest {
         preset: request.trajectory,
         cameras: request.cameras.unwrap_or_default(),
         camera: request.camera,
-        frames: request.frames,
+        frames,
         start: request.start,
         end: request.end,
         width: request.width,
@@ -117,7 +132,7 @@ pub async fn render(
     let record = service.store.get(&id)?;
     let plan = service.plan_path(&record, &path)?;
     let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
-    let approximation = service.approximation(&quality, &times)?;
+    let approximation = service.approximation(&record, &quality, &times)?;
     let encoding = service.store.encoding(&id).await?;
     let background = path.background;
     let images = service

@@ -3,7 +3,11 @@
 //! Archives are untrusted: entry counts and declared sizes are checked before anything is
 //! inflated, an entry that claims more than [`MAX_INFLATION`] times its compressed size is
 //! refused as a decompression bomb, and reads stop at the declared size whatever the archive
-//! claims. Image headers are read for sizes before pixels are decoded.
+//! claims. Nothing of an archive is ever written to disk, and an archive that names a path
+//! outside itself (`../x.png`, `/etc/x.png`, `C:\x.png`) or holds a link (a tar's symbolic or
+//! hard link, a zip's symbolic link) is refused whole: such an archive was made to escape, not to
+//! carry frames. Image headers are read for sizes before pixels are decoded, and decoding is held
+//! to the largest frame allowed.
 
 use std::io::{Cursor, Read};
 
@@ -121,6 +125,30 @@ fn is_frame_name(name: &str) -> bool {
             .any(|ext| lower.ends_with(ext))
 }
 
+/// True when an archive entry's name stays inside the archive: relative, with no `..` component
+/// (either slash separates), no drive and no NUL.
+fn is_contained(name: &str) -> bool {
+    let bytes = name.as_bytes();
+    let drive = bytes.len() >= 2 && bytes[0].is_ascii_alphabetic() && bytes[1] == b':';
+    !name.is_empty()
+        && !name.starts_with(['/', '\\'])
+        && !drive
+        && !name.contains('\0')
+        && !name.split(['/', '\\']).any(|part| part == "..")
+}
+
+fn escaping(kind: &str, name: &str) -> ServiceError {
+    ServiceError::UnreadableMedia(format!(
+        "{kind} entry {name:?} names a path outside the archive: refused"
+    ))
+}
+
+fn link(kind: &str, name: &str) -> ServiceError {
+    ServiceError::UnreadableMedia(format!(
+        "{kind} entry {name:?} is a link: an archive of frames holds regular files only"
+    ))
+}
+
 fn unzip(data: &[u8], limits: &Limits) -> Result<Vec<Bytes>, ServiceError> {
     let mut archive = zip::ZipArchive::new(Cursor::new(data)).map_err(|e| {
         ServiceError::UnreadableMedia(format!("the zip archive cannot be read: {e}"))
@@ -138,6 +166,12 @@ fn unzip(data: &[u8], limits: &Limits) -> Result<Vec<Bytes>, ServiceError> {
                 ServiceError::UnreadableMedia(format!("zip entry {i} has a bad name: {e}"))
             })?
             .into_owned();
+        if !is_contained(&name) {
+            return Err(escaping("zip", &name));
+        }
+        if entry.is_symlink() {
+            return Err(link("zip", &name));
+        }
         if entry.is_dir() || !is_frame_name(&name) {
             continue;
         }
@@ -184,11 +218,16 @@ fn untar(data: &[u8], limits: &Limits) -> Result<Vec<Bytes>, ServiceError> {
         let mut entry = entry.map_err(|e| {
             ServiceError::UnreadableMedia(format!("a tar entry cannot be read: {e}"))
         })?;
-        let name = entry
-            .path()
-            .map(|p| p.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        if !entry.header().entry_type().is_file() || !is_frame_name(&name) {
+        // The raw name: `path()` would refuse a `..` component before we could say why.
+        let name = String::from_utf8_lossy(&entry.path_bytes()).into_owned();
+        if !is_contained(&name) {
+            return Err(escaping("tar", &name));
+        }
+        let kind = entry.header().entry_type();
+        if kind.is_symlink() || kind.is_hard_link() {
+            return Err(link("tar", &name));
+        }
+        if !kind.is_file() || !is_frame_name(&name) {
             continue;
         }
         check_frame_count(frames.len() + 1, limits)?;
@@ -219,4 +258,243 @@ fn decode(bytes: &[u8], limits: &Limits) -> Result<RgbImage, image::ImageError> 
     image_limits.max_alloc = Some(u64::from(limits.max_side).pow(2) * 8);
     reader.limits(image_limits);
     Ok(reader.decode()?.to_rgb8())
+}
+
+#[cfg(test)]
+mod tests {
+    use std::io::Write;
+
+    use super::*;
+
+    fn png(width: u32, height: u32) -> Vec<u8> {
+        let mut bytes = Vec::new();
+        RgbImage::from_pixel(width, height, image::Rgb([90, 120, 200]))
+            .write_to(&mut Cursor::new(&mut bytes), image::ImageFormat::Png)
+            .unwrap();
+        bytes
+    }
+
+    /// A 1x1 PNG whose header says `width` x `height`: what a decompression bomb sends.
+    fn png_header_only(width: u32, height: u32) -> Vec<u8> {
+        let mut bytes = png(1, 1);
+        // IHDR's width and height sit at bytes 16..24, its CRC at 29..33.
+        bytes[16..20].copy_from_slice(&width.to_be_bytes());
+        bytes[20..24].copy_from_slice(&height.to_be_bytes());
+        let crc = crc32(&bytes[12..29]);
+        bytes[29..33].copy_from_slice(&crc.to_be_bytes());
+        bytes
+    }
+
+    fn crc32(bytes: &[u8]) -> u32 {
+        let mut crc = 0xffff_ffffu32;
+        for &b in bytes {
+            crc ^= u32::from(b);
+            for _ in 0..8 {
+                crc = if crc & 1 != 0 {
+                    (crc >> 1) ^ 0xedb8_8320
+                } else {
+                    crc >> 1
+                };
+            }
+        }
+        !crc
+    }
+
+    fn zip_of(entries: &[(&str, &[u8])]) -> Vec<u8> {
+        let mut writer = zip::ZipWriter::new(Cursor::new(Vec::new()));
+        let options = zip::write::SimpleFileOptions::default()
+            .compression_method(zip::CompressionMethod::Deflated);
+        for (name, data) in entries {
+            writer.start_file(*name, options).unwrap();
+            writer.write_all(data).unwrap();
+        }
+        writer.finish().unwrap().into_inner()
+    }
+
+    /// A tar entry with a raw `name` (the tar crate's builder refuses `..`) and `kind`.
+    fn tar_entry(out: &mut Vec<u8>, name: &[u8], kind: tar::EntryType, data: &[u8], link: &[u8]) {
+        let mut header = tar::Header::new_ustar();
+        header.as_old_mut().name[..name.len()].copy_from_slice(name);
+        header.as_old_mut().linkname[..link.len()].copy_from_slice(link);
+        header.set_entry_type(kind);
+        header.set_size(data.len() as u64);
+        header.set_mode(0o644);
+        header.set_cksum();
+        out.extend_from_slice(header.as_bytes());
+        out.extend_from_slice(data);
+        out.resize(out.len().div_ceil(512) * 512, 0);
+    }
+
+    /// A tar entry: raw name, type, data, link target.
+    type TarEntry<'a> = (&'a [u8], tar::EntryType, &'a [u8], &'a [u8]);
+
+    fn tar_of(entries: &[TarEntry<'_>]) -> Vec<u8> {
+        let mut out = Vec::new();
+        for (name, kind, data, link) in entries {
+            tar_entry(&mut out, name, *kind, data, link);
+        }
+        out.resize(out.len() + 1024, 0);
+        out
+    }
+
+    fn refusal<T: std::fmt::Debug>(result: Result<T, ServiceError>) -> (String, ServiceError) {
+        let e = result.unwrap_err();
+        (e.to_string(), e)
+    }
+
+    #[test]
+    fn names_that_leave_the_archive_are_told_apart_from_frames_in_folders() {
+        for good in [
+            "frame-000.png",
+            "clip/frames/001.png",
+            "./002.png",
+            "a..b.png",
+            "x\\y.png",
+        ] {
+            assert!(is_contained(good), "{good}");
+        }
+        for bad in [
+            "../escape.png",
+            "frames/../../escape.png",
+            "frames\\..\\escape.png",
+            "/etc/escape.png",
+            "\\\\server\\share\\x.png",
+            "C:\\escape.png",
+            "c:escape.png",
+            "frame\0.png",
+            "",
+        ] {
+            assert!(!is_contained(bad), "{bad:?}");
+        }
+    }
+
+    #[test]
+    fn an_archive_that_names_a_path_outside_itself_is_refused_whole() {
+        let frame = png(16, 16);
+        let limits = Limits::default();
+        let zip = zip_of(&[("000.png", &frame), ("../../escape.png", &frame)]);
+        let (message, e) = refusal(unzip(&zip, &limits));
+        assert!(matches!(e, ServiceError::UnreadableMedia(_)), "{e:?}");
+        assert!(
+            message.contains("\"../../escape.png\" names a path outside"),
+            "{message}"
+        );
+        let zip = zip_of(&[("/tmp/escape.png", &frame)]);
+        assert!(
+            refusal(unzip(&zip, &limits))
+                .0
+                .contains("outside the archive")
+        );
+
+        let file = tar::EntryType::Regular;
+        let tar = tar_of(&[
+            (b"000.png", file, &frame, b""),
+            (b"a/../../x.png", file, &frame, b""),
+        ]);
+        let (message, e) = refusal(untar(&tar, &limits));
+        assert!(matches!(e, ServiceError::UnreadableMedia(_)), "{e:?}");
+        assert!(
+            message.contains("tar entry \"a/../../x.png\" names a path outside"),
+            "{message}"
+        );
+        let tar = tar_of(&[(b"/etc/x.png", file, &frame, b"")]);
+        assert!(
+            refusal(untar(&tar, &limits))
+                .0
+                .contains("outside the archive")
+        );
+        // The same frames, contained, read.
+        let tar = tar_of(&[
+            (b"clip/000.png", file, &frame, b""),
+            (b"clip/001.png", file, &frame, b""),
+        ]);
+        assert_eq!(untar(&tar, &limits).unwrap().len(), 2);
+    }
+
+    #[test]
+    fn links_in_archives_are_refused_and_never_followed() {
+        let frame = png(16, 16);
+        let limits = Limits::default();
+        let file = tar::EntryType::Regular;
+        for kind in [tar::EntryType::Symlink, tar::EntryType::Link] {
+            let tar = tar_of(&[
+                (b"000.png", file, &frame, b""),
+                (b"001.png", kind, b"", b"/etc/passwd"),
+            ]);
+            let (message, e) = refusal(untar(&tar, &limits));
+            assert!(matches!(e, ServiceError::UnreadableMedia(_)), "{e:?}");
+            assert!(
+                message.contains("\"001.png\" is a link"),
+                "{kind:?}: {message}"
+            );
+        }
+        let mut writer = zip::ZipWriter::new(Cursor::new(Vec::new()));
+        let options = zip::write::SimpleFileOptions::default();
+        writer.start_file("000.png", options).unwrap();
+        writer.write_all(&frame).unwrap();
+        writer
+            .add_symlink("001.png", "/etc/passwd", options)
+            .unwrap();
+        let zip = writer.finish().unwrap().into_inner();
+        assert!(
+            refusal(unzip(&zip, &limits))
+                .0
+                .contains("\"001.png\" is a link")
+        );
+    }
+
+    #[test]
+    fn a_zip_entry_is_refused_as_a_bomb_from_its_own_numbers_and_read_only_as_far_as_it_says() {
+        let limits = Limits::default();
+        let zeros = vec![0u8; 32 << 20];
+        let bomb = zip_of(&[("000.png", &zeros)]);
+        assert!(bomb.len() < 1 << 20);
+        let (message, e) = refusal(unzip(&bomb, &limits));
+        assert!(matches!(e, ServiceError::TooLarge(_)), "{e:?}");
+        assert!(message.contains("decompression bomb"), "{message}");
+
+        // The same entry, its declared size rewritten to 1000 bytes in both headers: it passes the
+        // ratio check, and exactly 1000 bytes are inflated, whatever the stream holds.
+        let mut liar = bomb.clone();
+        let local = 22; // a local header's uncompressed size
+        liar[local..local + 4].copy_from_slice(&1000u32.to_le_bytes());
+        let central = liar.windows(4).position(|w| w == b"PK\x01\x02").unwrap();
+        liar[central + 24..central + 28].copy_from_slice(&1000u32.to_le_bytes());
+        let frames = unzip(&liar, &limits).unwrap();
+        assert_eq!(frames.len(), 1);
+        assert_eq!(frames[0].len(), 1000);
+
+        // Declared sizes add up against C4G_MAX_ARCHIVE_MIB before anything is inflated.
+        let small = Limits {
+            max_archive_bytes: 1 << 20,
+            ..Limits::default()
+        };
+        let half = vec![7u8; 600 << 10];
+        let two = zip_of(&[("000.png", &half), ("001.png", &half)]);
+        let (message, e) = refusal(unzip(&two, &small));
+        assert!(matches!(e, ServiceError::TooLarge(_)), "{e:?}");
+        assert!(message.contains("C4G_MAX_ARCHIVE_MIB"), "{message}");
+    }
+
+    #[test]
+    fn a_png_header_that_claims_gigapixels_is_refused_before_any_pixel_is_decoded() {
+        let limits = Limits::default();
+        let bomb = png_header_only(100_000, 100_000);
+        assert_eq!(dimensions(&bomb).unwrap(), (100_000, 100_000));
+        let (message, e) = refusal(read(
+            Media::Frames(vec![Bytes::from(bomb)]),
+            MediaKind::Frames,
+            &IntakeOptions::default(),
+            &limits,
+        ));
+        assert!(matches!(e, ServiceError::TooLarge(_)), "{e:?}");
+        assert!(message.contains("100000x100000"), "{message}");
+        // Decoding itself is held to the largest side too, whatever a header said before.
+        let small = Limits {
+            max_side: 32,
+            ..Limits::default()
+        };
+        assert!(decode(&png(64, 64), &small).is_err());
+        assert_eq!(decode(&png(32, 32), &small).unwrap().dimensions(), (32, 32));
+    }
 }

@@ -266,8 +266,13 @@ fn validate_options(options: &IntakeOptions, limits: &Limits) -> Result<(), Serv
             limits.max_context_frames
         )));
     }
-    if options.stride == Some(0) {
-        return Err(ServiceError::invalid("stride must be at least 1"));
+    if let Some(stride) = options.stride
+        && (stride == 0 || stride > limits.max_source_frames)
+    {
+        return Err(ServiceError::invalid(format!(
+            "stride must be between 1 and {} (C4G_MAX_SOURCE_FRAMES), got {stride}",
+            limits.max_source_frames
+        )));
     }
     if let Some(times) = &options.timestamps {
         if let Some(t) = times.iter().find(|t| !t.is_finite()) {
