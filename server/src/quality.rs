@@ -31,9 +31,6 @@ pub enum Preset {
 }
 
 impl Preset {
-    /// Every preset, for documentation and tests.
-    pub const ALL: [Preset; 3] = [Preset::Exact, Preset::Balanced, Preset::Fast];
-
     /// The preset's name on the wire.
     pub fn name(self) -> &'static str {
         match self {
@@ -134,16 +131,6 @@ pub struct QualitySpec {
     pub keyframes: Option<KeyframesSpec>,
     /// Pruning, overriding the preset's.
     pub prune: Option<PruneSpec>,
-}
-
-impl QualitySpec {
-    /// Only keyframes, as stated.
-    pub fn keyframes(keyframes: Option<KeyframesSpec>) -> Self {
-        Self {
-            keyframes,
-            ..Self::default()
-        }
-    }
 }
 
 /// The trade a request gets, checked.

@@ -9,7 +9,9 @@
 //! covers the rounding of two decoder runs of different batches.
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
-use c4g_e2e::{Server, frames_form, ort_available, synthetic_clip};
+use c4g_e2e::{
+    Server, expect_invalid, frames_form, json_of, metric, ort_available, synthetic_clip,
+};
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
 use reqwest::blocking::Client;
@@ -19,13 +21,6 @@ use serde_json::{Value, json};
 const TOLERANCE: f64 = 0.005;
 /// Two decoder runs of one time in different batches: float rounding only.
 const RUN_TO_RUN: f64 = 1e-5;
-
-fn json_of(response: reqwest::blocking::Response) -> Value {
-    let status = response.status();
-    let text = response.text().unwrap();
-    assert!(status.is_success(), "{status}: {text}");
-    serde_json::from_str(&text).unwrap()
-}
 
 /// Every frame's means from a JSON decode.
 fn means(decoded: &Value) -> Vec<Vec<[f64; 3]>> {
@@ -61,20 +56,6 @@ fn largest_distance(a: &[[f64; 3]], b: &[[f64; 3]]) -> f64 {
         .zip(b)
         .map(|(p, q)| (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f64>().sqrt())
         .fold(0.0, f64::max)
-}
-
-fn metric(text: &str, line_start: &str) -> f64 {
-    text.lines()
-        .find_map(|l| l.strip_prefix(line_start)?.trim().parse().ok())
-        .unwrap_or(0.0)
-}
-
-fn expect_invalid(response: reqwest::blocking::Response, says: &str) {
-    assert_eq!(response.status(), 400);
-    let body: Value = response.json().unwrap();
-    assert_eq!(body["kind"], "invalid_input", "{body}");
-    let message = body["error"].as_str().unwrap();
-    assert!(message.contains(says), "{message:?} should say {says:?}");
 }
 
 #[test]

@@ -11,7 +11,9 @@
 //! time).
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
-use c4g_e2e::{Server, frames_form, ort_available, synthetic_clip};
+use c4g_e2e::{
+    Server, expect_invalid, frames_form, json_of, metric, ort_available, synthetic_clip,
+};
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
 use reqwest::blocking::Client;
@@ -19,13 +21,6 @@ use serde_json::{Value, json};
 
 const GAUSSIANS: usize = 512;
 const MIN_PRUNED_RENDER_PSNR_DB: f64 = 40.0;
-
-fn json_of(response: reqwest::blocking::Response) -> Value {
-    let status = response.status();
-    let text = response.text().unwrap();
-    assert!(status.is_success(), "{status}: {text}");
-    serde_json::from_str(&text).unwrap()
-}
 
 /// The Gaussian count of every frame of a JSON decode.
 fn counts(decoded: &Value) -> Vec<usize> {
@@ -37,12 +32,6 @@ fn counts(decoded: &Value) -> Vec<usize> {
         .collect()
 }
 
-fn metric(text: &str, line_start: &str) -> f64 {
-    text.lines()
-        .find_map(|l| l.strip_prefix(line_start)?.trim().parse().ok())
-        .unwrap_or(0.0)
-}
-
 fn png_rgb(bytes: &[u8]) -> Vec<f32> {
     let image = image::load_from_memory(bytes).unwrap().to_rgb8();
     image
@@ -50,14 +39,6 @@ fn png_rgb(bytes: &[u8]) -> Vec<f32> {
         .iter()
         .map(|&v| f32::from(v) / 255.0)
         .collect()
-}
-
-fn expect_invalid(response: reqwest::blocking::Response, says: &str) {
-    assert_eq!(response.status(), 400);
-    let body: Value = response.json().unwrap();
-    assert_eq!(body["kind"], "invalid_input", "{body}");
-    let message = body["error"].as_str().unwrap();
-    assert!(message.contains(says), "{message:?} should say {says:?}");
 }
 
 #[test]

@@ -6,7 +6,9 @@
 
 use std::path::Path;
 
-use c4g_e2e::{Server, frames_form, ort_available, shared_data, synthetic_clip, workspace};
+use c4g_e2e::{
+    Server, frames_form, json_of, metric, ort_available, shared_data, synthetic_clip, workspace,
+};
 use c4g_engine::{ContextFrame, Engine, EngineOptions};
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
@@ -17,13 +19,6 @@ use serde_json::{Value, json};
 
 fn post_json(client: &Client, url: String, body: Value) -> reqwest::blocking::Response {
     client.post(url).json(&body).send().unwrap()
-}
-
-fn json_of(response: reqwest::blocking::Response) -> Value {
-    let status = response.status();
-    let text = response.text().unwrap();
-    assert!(status.is_success(), "{status}: {text}");
-    serde_json::from_str(&text).unwrap()
 }
 
 /// What this process computes for clip `clip` at `t` seen by `world_to_camera` at `size`:
@@ -461,12 +456,6 @@ fn zip_of_frames(frames: &[std::path::PathBuf]) -> Vec<u8> {
         writer.write_all(&std::fs::read(frame).unwrap()).unwrap();
     }
     writer.finish().unwrap().into_inner()
-}
-
-fn metric(text: &str, name: &str) -> f64 {
-    text.lines()
-        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
-        .unwrap_or(0.0)
 }
 
 #[test]

@@ -492,6 +492,23 @@ impl ServerProcess {
     }
 }
 
+/// The JSON body of a successful answer (fails the test, with the body, on any other).
+pub fn json_of(response: reqwest::blocking::Response) -> serde_json::Value {
+    let status = response.status();
+    let text = response.text().unwrap();
+    assert!(status.is_success(), "{status}: {text}");
+    serde_json::from_str(&text).unwrap()
+}
+
+/// Asserts a 400 `invalid_input` answer whose message says `says`.
+pub fn expect_invalid(response: reqwest::blocking::Response, says: &str) {
+    assert_eq!(response.status(), 400);
+    let body: serde_json::Value = response.json().unwrap();
+    assert_eq!(body["kind"], "invalid_input", "{body}");
+    let message = body["error"].as_str().unwrap();
+    assert!(message.contains(says), "{message:?} should say {says:?}");
+}
+
 /// The sum of every series of the Prometheus metric `name` in a `/metrics` text (0 when absent).
 pub fn metric(text: &str, name: &str) -> f64 {
     text.lines()
