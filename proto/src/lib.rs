@@ -1,7 +1,10 @@
 //! The c4g gRPC contract: the messages and services of `proto/c4g/v1/c4g.proto`, generated at
-//! build time, and the descriptor set that gRPC reflection serves.
+//! build time, the descriptor set that gRPC reflection serves, and the [`codec`] both ends use.
 
 #![allow(missing_docs, clippy::all)]
+
+/// Prost's codec, with messages that do not decode as `INVALID_ARGUMENT`.
+pub mod codec;
 
 /// Package `c4g.v1`.
 pub mod v1 {

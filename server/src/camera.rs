@@ -5,8 +5,20 @@
 use c4g_renderer::{Camera, NormalizedIntrinsics};
 use glam::{Affine3A, Mat4};
 use serde::{Deserialize, Serialize};
+use serde_json::Value;
 
 use crate::ServiceError;
+
+/// Largest coordinate, distance or angle a camera or trajectory preset may state: far beyond
+/// any scene C4G reconstructs (its scenes are a few units across), small enough that every
+/// product the renderer forms of them stays finite in f32.
+pub const SCENE_BOUND: f64 = 1e6;
+
+/// Largest normalised focal length, and principal point offset, of a camera.
+pub const FOCAL_BOUND: f64 = 1000.0;
+
+/// Smallest positive length (focal length, depth, radius) a camera or preset may state.
+pub const SMALLEST_LENGTH: f64 = 1e-6;
 
 /// A camera as a client states it: a row-major 4×4 world-to-camera matrix (OpenCV axes) and
 /// intrinsics as fractions of the image size. Both default to the first context camera's.
@@ -52,6 +64,12 @@ impl CameraSpec {
                         &m[12..]
                     )));
                 }
+                if let Some((i, v)) = m[..12].iter().enumerate().find(|(_, v)| !bounded(**v)) {
+                    return Err(ServiceError::invalid(format!(
+                        "world_to_camera[{i}] must be between {:e} and {SCENE_BOUND:e}, got {v}",
+                        -SCENE_BOUND
+                    )));
+                }
                 Affine3A::from_mat4(rows)
             }
             Some(m) => {
@@ -61,6 +79,25 @@ impl CameraSpec {
                 )));
             }
         };
+        if let Some(i) = self.intrinsics {
+            let focal = SMALLEST_LENGTH..=FOCAL_BOUND;
+            let offset = -FOCAL_BOUND..=FOCAL_BOUND;
+            for (name, v, range) in [
+                ("fx", i.fx, &focal),
+                ("fy", i.fy, &focal),
+                ("cx", i.cx, &offset),
+                ("cy", i.cy, &offset),
+            ] {
+                if !range.contains(&f64::from(v)) {
+                    return Err(ServiceError::invalid(format!(
+                        "intrinsics {name} must be between {:e} and {:e} (fractions of the \
+                         image size), got {v}",
+                        range.start(),
+                        range.end()
+                    )));
+                }
+            }
+        }
         let intrinsics = self
             .intrinsics
             .map(|i| NormalizedIntrinsics {
@@ -71,5 +108,126 @@ impl CameraSpec {
             })
             .unwrap_or(NormalizedIntrinsics::C4G_DEFAULT);
         Ok(Camera::from_normalized(intrinsics, width, height, pose)?)
+    }
+}
+
+fn bounded(v: f32) -> bool {
+    (-SCENE_BOUND..=SCENE_BOUND).contains(&f64::from(v))
+}
+
+/// A preset's fields: those of its `kind` only (serde would ignore others), each in range.
+pub fn check_preset(preset: &Value) -> Result<(), ServiceError> {
+    let Value::Object(fields) = preset else {
+        return Ok(());
+    };
+    let kind = fields
+        .get("kind")
+        .and_then(Value::as_str)
+        .unwrap_or_default();
+    // (field, lowest, highest) of each kind's numbers.
+    let length = (SMALLEST_LENGTH, SCENE_BOUND);
+    let signed = (-SCENE_BOUND, SCENE_BOUND);
+    let known: &[(&str, (f64, f64))] = match kind {
+        "orbit" => &[
+            ("depth", length),
+            ("angle_degrees", signed),
+            ("radius", length),
+        ],
+        "spiral" => &[
+            ("radii", (0.0, SCENE_BOUND)),
+            ("focus_depth", length),
+            ("rotations", signed),
+            ("z_rate", signed),
+        ],
+        "dolly" => &[("distance", signed), ("subject_depth", length)],
+        // serde names the kinds it knows.
+        _ => return Ok(()),
+    };
+    for (name, value) in fields.iter().filter(|(name, _)| *name != "kind") {
+        let Some((_, (low, high))) = known.iter().find(|(k, _)| k == name) else {
+            let names: Vec<&str> = known.iter().map(|(k, _)| *k).collect();
+            return Err(ServiceError::invalid(format!(
+                "unknown field `{name}` in the trajectory: a {kind} takes {}",
+                names.join(", ")
+            )));
+        };
+        match value {
+            Value::Array(items) => items.iter().enumerate().try_for_each(|(i, v)| {
+                within(Some(v), &format!("{kind} {name}[{i}]"), *low, *high)
+            })?,
+            v => within(Some(v), &format!("{kind} {name}"), *low, *high)?,
+        }
+    }
+    Ok(())
+}
+
+/// `value`, when it is a number, in `low..=high`.
+pub fn within(value: Option<&Value>, name: &str, low: f64, high: f64) -> Result<(), ServiceError> {
+    match value.and_then(Value::as_f64) {
+        Some(v) if !(low..=high).contains(&v) => Err(ServiceError::invalid(format!(
+            "{name} must be between {low:e} and {high:e}, got {v}"
+        ))),
+        _ => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    fn refusal(spec: CameraSpec) -> String {
+        spec.camera(32, 32).unwrap_err().to_string()
+    }
+
+    /// Both transports build cameras here, so gRPC's f32 fields meet the bounds REST states.
+    #[test]
+    fn cameras_out_of_bounds_are_refused_whatever_the_transport() {
+        let mut pose = vec![
+            1.0, 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1.,
+        ];
+        assert!(
+            CameraSpec {
+                world_to_camera: Some(pose.clone()),
+                intrinsics: None
+            }
+            .camera(32, 32)
+            .is_ok()
+        );
+        pose[3] = 2e6;
+        let message = refusal(CameraSpec {
+            world_to_camera: Some(pose),
+            intrinsics: None,
+        });
+        assert!(message.contains("world_to_camera[3]"), "{message}");
+        let intrinsics = |fx, cx| IntrinsicsSpec {
+            fx,
+            fy: 0.9,
+            cx,
+            cy: 0.5,
+        };
+        for (fx, cx, name) in [(1e30, 0.5, "fx"), (0.0, 0.5, "fx"), (0.9, -2e3, "cx")] {
+            let message = refusal(CameraSpec {
+                world_to_camera: None,
+                intrinsics: Some(intrinsics(fx, cx)),
+            });
+            assert!(message.contains(&format!("intrinsics {name}")), "{message}");
+        }
+    }
+
+    #[test]
+    fn presets_are_held_to_their_own_fields_and_ranges() {
+        let check = |v: serde_json::Value| check_preset(&v).map_err(|e| e.to_string());
+        check(serde_json::json!({"kind": "orbit", "depth": 2.0, "angle_degrees": 30})).unwrap();
+        assert!(
+            check(serde_json::json!({"kind": "orbit", "depth": 0}))
+                .unwrap_err()
+                .contains("orbit depth")
+        );
+        assert!(
+            check(serde_json::json!({"kind": "dolly", "radii": [1]}))
+                .unwrap_err()
+                .contains("unknown field `radii`")
+        );
     }
 }

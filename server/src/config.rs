@@ -1,6 +1,7 @@
 //! The server's settings. Every flag also reads an environment variable, and every default works
 //! on a laptop.
 
+use std::fmt;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -8,6 +9,32 @@ use std::time::Duration;
 use c4g_engine::{EngineOptions, ExecutionProvider, TimePolicy};
 use c4g_renderer::raster::Footprint;
 use clap::{Parser, ValueEnum};
+
+/// A setting that never appears in logs or debug output: the API key. Read it with
+/// [`expose`](Self::expose), where it is compared.
+#[derive(Clone, PartialEq, Eq)]
+pub struct Secret(String);
+
+impl Secret {
+    /// The secret itself.
+    pub fn expose(&self) -> &str {
+        &self.0
+    }
+}
+
+impl fmt::Debug for Secret {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("Secret(redacted)")
+    }
+}
+
+impl std::str::FromStr for Secret {
+    type Err = std::convert::Infallible;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Ok(Self(s.to_owned()))
+    }
+}
 
 /// Serve a C4G model package over HTTP.
 #[derive(Debug, Clone, Parser)]
@@ -109,7 +136,7 @@ pub struct Config {
     pub max_grpc_message_mib: usize,
     /// When set, every /v1 request and gRPC call needs `Authorization: Bearer <key>`.
     #[arg(long, env = "C4G_API_KEY", hide_env_values = true)]
-    pub api_key: Option<String>,
+    pub api_key: Option<Secret>,
     /// The rasterizer: `cpu`, or with the `gpu` build feature `gpu` (wgpu) or `auto` (wgpu on a
     /// hardware GPU, the CPU rasterizer otherwise: Mesa's software Vulkan is slower than it).
     #[arg(long, env = "C4G_RENDERER", value_enum, default_value_t = RendererArg::Auto)]
@@ -301,6 +328,18 @@ mod tests {
 
     fn parse(args: &[&str]) -> Config {
         Config::try_parse_from(std::iter::once("c4g-server").chain(args.iter().copied())).unwrap()
+    }
+
+    #[test]
+    fn the_api_key_never_appears_in_debug_output() {
+        let config = parse(&["--api-key", "hunter2-very-secret"]);
+        assert_eq!(
+            config.api_key.as_ref().map(Secret::expose),
+            Some("hunter2-very-secret")
+        );
+        let shown = format!("{config:?}");
+        assert!(!shown.contains("hunter2"), "{shown}");
+        assert!(shown.contains("redacted"), "{shown}");
     }
 
     #[test]

@@ -355,14 +355,16 @@ impl C4g for Grpc {
         if start > end {
             return Err(ServiceError::invalid(format!("start {start} is after end {end}")).into());
         }
-        let count = ((end - start) / step + 1e-9).floor() as usize + 1;
-        if count > service.limits.max_times {
+        // Counted in f64 first: a tiny step makes more sets than a usize holds.
+        let sets = ((end - start) / step + 1e-9).floor() + 1.0;
+        if sets > service.limits.max_times as f64 {
             return Err(ServiceError::TooLarge(format!(
-                "{count} sets in one stream; at most {} (C4G_MAX_TIMES): use a larger step",
+                "{sets:.0} sets in one stream; at most {} (C4G_MAX_TIMES): use a larger step",
                 service.limits.max_times
             ))
             .into());
         }
+        let count = sets as usize;
         let times: Vec<f64> = (0..count)
             .map(|i| (start + step * i as f64).min(end))
             .collect();
@@ -458,9 +460,13 @@ impl C4g for Grpc {
         let format = image_format(request.format)?;
         let preset = match request.preset_json.trim() {
             "" => None,
-            json => Some(serde_json::from_str::<Trajectory>(json).map_err(|e| {
-                ServiceError::invalid(format!("preset_json is not a trajectory: {e}"))
-            })?),
+            json => {
+                let not_one =
+                    |e| ServiceError::invalid(format!("preset_json is not a trajectory: {e}"));
+                let value: serde_json::Value = serde_json::from_str(json).map_err(not_one)?;
+                crate::camera::check_preset(&value)?;
+                Some(serde_json::from_value::<Trajectory>(value).map_err(not_one)?)
+            }
         };
         let path = PathRequest {
             preset,

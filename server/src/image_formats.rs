@@ -88,11 +88,11 @@ pub async fn encode_mp4(
     fps: f64,
 ) -> Result<Vec<u8>, ServiceError> {
     std::fs::create_dir_all(scratch)
-        .map_err(|e| ServiceError::Internal(format!("cannot create the scratch directory: {e}")))?;
+        .map_err(|e| ServiceError::storage("cannot create the scratch directory", &e))?;
     let out = tempfile::Builder::new()
         .suffix(".mp4")
         .tempfile_in(scratch)
-        .map_err(|e| ServiceError::Internal(format!("cannot create a scratch file: {e}")))?;
+        .map_err(|e| ServiceError::storage("cannot create a scratch file for the video", &e))?;
     let mut child = Command::new(ffmpeg)
         .args([
             "-v", "error", "-y", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s",
@@ -128,9 +128,15 @@ pub async fn encode_mp4(
         .await
         .map_err(|e| ServiceError::Internal(format!("waiting for ffmpeg: {e}")))?;
     if !output.status.success() {
+        let log = String::from_utf8_lossy(&output.stderr);
+        // FFmpeg says ENOSPC in words only: a full scratch disk is the client's 507, not a 500.
+        if log.contains("No space left on device") {
+            let full = std::io::Error::from(std::io::ErrorKind::StorageFull);
+            return Err(ServiceError::storage("cannot write the video", &full));
+        }
         return Err(ServiceError::Internal(format!(
             "ffmpeg could not encode the video: {}",
-            String::from_utf8_lossy(&output.stderr).trim()
+            log.trim()
         )));
     }
     tokio::fs::read(out.path())

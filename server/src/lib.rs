@@ -17,6 +17,7 @@
 //! | `image_formats` | what renders answer with: PNG, raw depth and alpha, MP4 |
 //! | `service_error` | [`ServiceError`]: what went wrong, in domain words, and its kinds |
 //! | [`faults`] | fault points where tests stop the server to kill it (off unless named) |
+//! | `fuzzing` | the fuzz targets' entry points (feature `fuzzing`): untrusted bytes in, bugs out |
 //! | *the edge* | |
 //! | `api` | the REST routes, one file per endpoint group; `/openapi.json` and `/docs` |
 //! | `grpc` | the gRPC service `c4g.v1.C4G`, health and reflection, on the same port |
@@ -38,6 +39,8 @@ mod camera;
 pub mod config;
 mod error;
 pub mod faults;
+#[cfg(feature = "fuzzing")]
+pub mod fuzzing;
 mod grpc;
 mod image_formats;
 pub mod intake;

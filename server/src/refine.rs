@@ -157,8 +157,10 @@ impl RefineRequest {
             return Err(ServiceError::invalid("context_frames must be at least 1"));
         }
         // The path, planned at a nominal size: a bad camera or time range fails now, not later.
+        // Nominally 8 frames, or fewer where the server allows fewer sets a request: the worker's
+        // own frame count is the worker's, not the client's to be refused for.
         let record = service.store.get(clip_id)?;
-        let mut path = self.path(8);
+        let mut path = self.path(service.limits.max_times.clamp(1, 8));
         path.width = Some(16);
         path.height = Some(16);
         if !path.cameras.is_empty() {

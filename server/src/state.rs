@@ -26,7 +26,7 @@ struct Shared {
 impl AppState {
     /// State with no model loaded yet.
     pub fn new(config: Config, metrics: Option<PrometheusHandle>) -> Self {
-        let api_key = config.api_key.as_deref().map(ApiKey::new);
+        let api_key = config.api_key.as_ref().map(|key| ApiKey::new(key.expose()));
         Self {
             shared: Arc::new(Shared {
                 service: OnceLock::new(),

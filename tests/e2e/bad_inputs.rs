@@ -443,3 +443,44 @@ fn a_full_work_queue_is_refused_over_rest_and_grpc_with_its_kind_and_the_old_set
     });
     assert!(server.alive());
 }
+
+/// Bytes that are not the method's request message: a field of `DecodeRequest` (times, doubles)
+/// sent as a varint.
+#[derive(Clone, PartialEq, prost::Message)]
+struct NotADecodeRequest {
+    #[prost(uint64, tag = "2")]
+    times: u64,
+}
+
+#[test]
+fn a_grpc_message_that_does_not_decode_is_invalid_argument_and_says_so() {
+    if !ort_available() {
+        return;
+    }
+    let mut server = Server::start(&[]);
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    runtime.block_on(async {
+        let channel = tonic::transport::Channel::from_shared(server.url())
+            .unwrap()
+            .connect()
+            .await
+            .unwrap();
+        let mut grpc = tonic::client::Grpc::new(channel);
+        grpc.ready().await.unwrap();
+        let refused = grpc
+            .unary(
+                tonic::Request::new(NotADecodeRequest { times: 7 }),
+                tonic::codegen::http::uri::PathAndQuery::from_static("/c4g.v1.C4G/Decode"),
+                tonic_prost::ProstCodec::<NotADecodeRequest, pb::DecodeResponse>::default(),
+            )
+            .await
+            .unwrap_err();
+        // gRPC's own table says INTERNAL; ours says it is the caller's to fix (proto/src/codec.rs).
+        assert_eq!(refused.code(), tonic::Code::InvalidArgument, "{refused:?}");
+        assert!(
+            refused.message().contains("not a valid protobuf"),
+            "{refused:?}"
+        );
+    });
+    assert!(server.alive());
+}

@@ -700,6 +700,34 @@ fn a_full_disk_refuses_uploads_with_507_keeps_serving_and_recovers_when_space_re
     });
     assert_eq!(status.code(), tonic::Code::ResourceExhausted, "{status:?}");
     assert_eq!(kind_of(&status), "insufficient_storage");
+    // A video goes through scratch space on the store's disk (FFmpeg needs a seekable file), and
+    // so does an MP4 render: the same 507, not a 500.
+    let video = root.path().join("clip.mp4");
+    let made = std::process::Command::new("ffmpeg")
+        .args([
+            "-v",
+            "error",
+            "-f",
+            "lavfi",
+            "-i",
+            "testsrc=size=64x64:rate=10:duration=1",
+        ])
+        .args(["-pix_fmt", "yuv420p"])
+        .arg(&video)
+        .status()
+        .unwrap();
+    assert!(made.success());
+    let response = reqwest::blocking::Client::new()
+        .post(server.at("/v1/clips"))
+        .body(std::fs::read(&video).unwrap())
+        .send()
+        .unwrap();
+    let message = expect_error(response, 507, "insufficient_storage");
+    assert!(message.contains("scratch"), "{message}");
+    let trajectory = json!({"trajectory": {"kind": "orbit", "depth": 2.0, "angle_degrees": 10},
+                            "frames": 2, "width": 32, "height": 32, "format": "mp4"});
+    let render = post(&server, &format!("/v1/clips/{kept}/render"), trajectory);
+    expect_error(render, 507, "insufficient_storage");
     // Nothing half-written stays to keep the disk full, and what was stored is served.
     let model = model_dir(&disk);
     assert_eq!(names(&model.join("clips")), [kept.clone()].into());

@@ -22,21 +22,13 @@ use serde::de::DeserializeOwned;
 use serde_json::Value;
 
 use crate::ServiceError;
+use crate::camera::{FOCAL_BOUND, SCENE_BOUND, SMALLEST_LENGTH, check_preset, within};
 
 /// Largest JSON request body, bytes (a longer one is a 413).
 pub const MAX_JSON_BYTES: usize = 2 << 20;
 
 /// Deepest nesting of arrays and objects in a JSON body (the deepest the API uses is 5).
 pub const MAX_DEPTH: usize = 16;
-
-/// Largest coordinate, distance or angle a camera or trajectory preset may state.
-pub const SCENE_BOUND: f64 = 1e6;
-
-/// Largest normalised focal length, and principal point offset, of a camera.
-pub const FOCAL_BOUND: f64 = 1000.0;
-
-/// Smallest positive length (focal length, depth, radius) a camera or preset may state.
-pub const SMALLEST_LENGTH: f64 = 1e-6;
 
 /// A JSON body; no body (zero bytes) reads as `{}`.
 pub struct JsonBody<T>(pub T);
@@ -187,7 +179,7 @@ pub fn check_body(body: &Value, max_times: usize) -> Result<(), ServiceError> {
         }
     }
     if let Some(preset) = body.get("trajectory") {
-        check_trajectory(preset)?;
+        check_preset(preset)?;
     }
     if let Some(prune) = body.get("prune") {
         within(prune.get("opacity"), "prune opacity", 0.0, 1.0)?;
@@ -206,16 +198,6 @@ pub fn check_body(body: &Value, max_times: usize) -> Result<(), ServiceError> {
         }
     }
     Ok(())
-}
-
-/// `value`, when it is a number, in `low..=high`.
-fn within(value: Option<&Value>, name: &str, low: f64, high: f64) -> Result<(), ServiceError> {
-    match value.and_then(Value::as_f64) {
-        Some(v) if !(low..=high).contains(&v) => Err(ServiceError::invalid(format!(
-            "{name} must be between {low:e} and {high:e}, got {v}"
-        ))),
-        _ => Ok(()),
-    }
 }
 
 fn check_camera(camera: &Value, name: &str) -> Result<(), ServiceError> {
@@ -266,52 +248,6 @@ fn check_camera(camera: &Value, name: &str) -> Result<(), ServiceError> {
             -FOCAL_BOUND,
             FOCAL_BOUND,
         )?;
-    }
-    Ok(())
-}
-
-/// A preset's fields: those of its `kind` only (serde would ignore others), each in range.
-fn check_trajectory(preset: &Value) -> Result<(), ServiceError> {
-    let Value::Object(fields) = preset else {
-        return Ok(());
-    };
-    let kind = fields
-        .get("kind")
-        .and_then(Value::as_str)
-        .unwrap_or_default();
-    // (field, lowest, highest) of each kind's numbers.
-    let length = (SMALLEST_LENGTH, SCENE_BOUND);
-    let signed = (-SCENE_BOUND, SCENE_BOUND);
-    let known: &[(&str, (f64, f64))] = match kind {
-        "orbit" => &[
-            ("depth", length),
-            ("angle_degrees", signed),
-            ("radius", length),
-        ],
-        "spiral" => &[
-            ("radii", (0.0, SCENE_BOUND)),
-            ("focus_depth", length),
-            ("rotations", signed),
-            ("z_rate", signed),
-        ],
-        "dolly" => &[("distance", signed), ("subject_depth", length)],
-        // serde names the kinds it knows.
-        _ => return Ok(()),
-    };
-    for (name, value) in fields.iter().filter(|(name, _)| *name != "kind") {
-        let Some((_, (low, high))) = known.iter().find(|(k, _)| k == name) else {
-            let names: Vec<&str> = known.iter().map(|(k, _)| *k).collect();
-            return Err(ServiceError::invalid(format!(
-                "unknown field `{name}` in the trajectory: a {kind} takes {}",
-                names.join(", ")
-            )));
-        };
-        match value {
-            Value::Array(items) => items.iter().enumerate().try_for_each(|(i, v)| {
-                within(Some(v), &format!("{kind} {name}[{i}]"), *low, *high)
-            })?,
-            v => within(Some(v), &format!("{kind} {name}"), *low, *high)?,
-        }
     }
     Ok(())
 }

@@ -12,9 +12,9 @@
 //! | `images` | zip and tar archives, image frames, decompression limits |
 //! | `sampling` | which frames become context frames |
 
-mod images;
+pub(crate) mod images;
 mod sampling;
-mod sniff;
+pub(crate) mod sniff;
 mod video;
 
 use std::path::PathBuf;
@@ -230,7 +230,10 @@ pub async fn read(
     }
 }
 
-fn validate_options(options: &IntakeOptions, limits: &Limits) -> Result<(), ServiceError> {
+pub(crate) fn validate_options(
+    options: &IntakeOptions,
+    limits: &Limits,
+) -> Result<(), ServiceError> {
     for (name, value) in [
         ("fps", options.fps),
         ("start", options.start),

@@ -51,12 +51,12 @@ pub async fn read(
     tools: &IntakeTools,
 ) -> Result<Intake, ServiceError> {
     std::fs::create_dir_all(&tools.scratch)
-        .map_err(|e| ServiceError::Internal(format!("cannot create the scratch directory: {e}")))?;
+        .map_err(|e| ServiceError::storage("cannot create the scratch directory", &e))?;
     let file = tempfile::NamedTempFile::new_in(&tools.scratch)
-        .map_err(|e| ServiceError::Internal(format!("cannot create a scratch file: {e}")))?;
+        .map_err(|e| ServiceError::storage("cannot create a scratch file", &e))?;
     tokio::fs::write(file.path(), &data)
         .await
-        .map_err(|e| ServiceError::Internal(format!("cannot write a scratch file: {e}")))?;
+        .map_err(|e| ServiceError::storage("cannot write the upload to a scratch file", &e))?;
     let deadline = tokio::time::Instant::now() + limits.intake_timeout;
     let work = async {
         let stream = probe(file.path(), kind, tools).await?;

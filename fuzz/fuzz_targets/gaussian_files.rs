@@ -1,0 +1,72 @@
+//! The readers of Gaussian files and payloads: 3DGS `.ply`, `.splat` and the `C4GS` codec.
+//! Input: `[format]bytes`.
+//!
+//! `.ply` and `.splat` files come from other tools, so their readers return what a file holds
+//! (activated), which need not meet the canonical invariants (3DGS colours from negative SH
+//! coefficients are below 0, a huge log-scale is an infinite scale). What is held of them: a set
+//! that decodes renders with the CPU rasterizer to finite pixels, and the writer's bytes read
+//! back (`.splat` leaves out what it cannot write). `C4GS` is our own: its f32 round trip is
+//! exact, bit for bit.
+#![no_main]
+
+use c4g_renderer::formats::{c4gs, ply, splat};
+use c4g_renderer::{
+    Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, Rasterizer, RenderOptions,
+};
+
+fn renders_finite(set: &GaussianSet) {
+    let camera = Camera::from_normalized(
+        NormalizedIntrinsics::C4G_DEFAULT,
+        16,
+        16,
+        Default::default(),
+    )
+    .expect("camera");
+    let image = CpuRasterizer::new()
+        .render(set, &camera, &RenderOptions::default())
+        .expect("a decoded set renders");
+    for (name, values) in [
+        ("rgb", &image.rgb),
+        ("alpha", &image.alpha),
+        ("depth", &image.depth),
+    ] {
+        assert!(values.iter().all(|v| v.is_finite()), "{name} is not finite");
+    }
+}
+
+libfuzzer_sys::fuzz_target!(|input: &[u8]| {
+    let Some((&format, bytes)) = input.split_first() else {
+        return;
+    };
+    match format % 3 {
+        0 => {
+            if let Ok(set) = ply::decode(bytes) {
+                renders_finite(&set);
+                let again = ply::decode(&ply::encode(&set)).expect("ply round trip");
+                assert_eq!(again.len(), set.len());
+            }
+        }
+        1 => {
+            if let Ok(set) = splat::decode(bytes) {
+                renders_finite(&set);
+                let again = splat::decode(&splat::encode(&set)).expect("splat round trip");
+                assert!(again.len() <= set.len());
+            }
+        }
+        _ => {
+            if let Ok(frames) = c4gs::decode(bytes) {
+                let refs = frames.iter().map(|(t, s)| (*t, s));
+                let written = c4gs::encode(refs, c4gs::Precision::F32).expect("c4gs encode");
+                let again = c4gs::decode(&written).expect("c4gs round trip");
+                assert_eq!(again.len(), frames.len());
+                let bits = |s: &GaussianSet| -> Vec<u32> {
+                    s.to_canonical().iter().map(|v| v.to_bits()).collect()
+                };
+                for ((t0, a), (t1, b)) in frames.iter().zip(&again) {
+                    assert_eq!(t0.to_bits(), t1.to_bits());
+                    assert_eq!(bits(a), bits(b), "C4GS f32 is not exact");
+                }
+            }
+        }
+    }
+});
