@@ -53,5 +53,5 @@ pub use render::{
     CameraSpec, IntrinsicsSpec, RenderFormat, RenderRequest, Rendered, TrajectoryPreset,
 };
 pub use sse::{SseDecoder, SseEvent};
-pub use stream::{GaussianStream, Spacing, StreamOptions};
+pub use stream::{Compact, GaussianStream, Spacing, StreamOptions};
 pub use upload::{UploadOptions, UploadSource, content_type_for};

@@ -4,6 +4,7 @@
 //! decodes a bounded number ahead, and a slow reader slows it down through HTTP/2 flow control.
 
 use c4g_proto::v1 as proto;
+use c4g_renderer::formats::c4gv;
 use futures_util::StreamExt;
 use futures_util::stream::BoxStream;
 
@@ -33,6 +34,28 @@ pub struct StreamOptions {
     /// A quality preset, keyframes (decoded over the range first, the sets between them
     /// interpolated), pruning (default: exact).
     pub approximation: Approximation,
+    /// The sets as one compact 4D stream (`C4GV`: quantised within a stated bound, a fraction
+    /// of the bytes), decoded here as they arrive; `precision` does not apply then.
+    pub compact: Option<Compact>,
+}
+
+/// A compact stream's settings (`renderer/src/formats/c4gv.rs` states every bound).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Compact {
+    /// Largest error of a position coordinate, scene units (1e-5 to 1).
+    pub position_error: f64,
+    /// A full set every this many sets (1 to 1024).
+    pub keyframe_interval: u32,
+}
+
+impl Default for Compact {
+    fn default() -> Self {
+        let options = c4gv::EncodeOptions::default();
+        Self {
+            position_error: options.position_error,
+            keyframe_interval: options.keyframe_interval,
+        }
+    }
 }
 
 /// Gaussian sets in time order, as they arrive; the first error ends the stream.
@@ -63,12 +86,43 @@ impl Client {
                 .map(Keyframes::to_proto),
             quality: options.approximation.proto_quality(),
             prune: options.approximation.prune.as_ref().map(Prune::to_proto),
+            compact: options.compact.map(|c| proto::CompactStream {
+                position_error: c.position_error,
+                keyframe_interval: c.keyframe_interval,
+            }),
         };
         let mut grpc = self.grpc().await?;
         let frames = grpc
             .stream_gaussians(self.grpc_request(request))
             .await?
             .into_inner();
-        Ok(frames.map(|frame| wire::unpack_frame(&frame?)).boxed())
+        if options.compact.is_none() {
+            return Ok(frames.map(|frame| wire::unpack_frame(&frame?)).boxed());
+        }
+        // Each message holds a piece of one C4GV stream: fed to one decoder, in order.
+        let decoded = frames.scan(c4gv::Decoder::new(), |decoder, message| {
+            let sets = match message {
+                Ok(message) => {
+                    decoder.feed(&message.c4gv);
+                    let mut sets = Vec::new();
+                    loop {
+                        match decoder.next_frame() {
+                            Ok(Some((time, gaussians))) => {
+                                sets.push(Ok(GaussianFrame { time, gaussians }));
+                            }
+                            Ok(None) => break,
+                            Err(e) => {
+                                sets.push(Err(Error::Malformed(format!("the C4GV stream: {e}"))));
+                                break;
+                            }
+                        }
+                    }
+                    sets
+                }
+                Err(status) => vec![Err(status.into())],
+            };
+            std::future::ready(Some(futures_util::stream::iter(sets)))
+        });
+        Ok(decoded.flatten().boxed())
     }
 }

@@ -75,6 +75,7 @@ impl C4g for Fake {
             Ok(proto::GaussianFrame {
                 time,
                 gaussians: Some(set(time as f32, precision)),
+                ..Default::default()
             })
         });
         Ok(Response::new(futures_util::stream::iter(frames).boxed()))
@@ -157,6 +158,7 @@ async fn streamed_sets_arrive_in_order_and_unpacked() {
             spacing: Some(Spacing::Step(0.25)),
             precision,
             approximation: Approximation::default(),
+            compact: None,
         };
         let frames: Vec<_> = client
             .stream("clip", &options)

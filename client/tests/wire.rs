@@ -185,6 +185,7 @@ fn proto_frames_keep_their_time() {
     let frame = proto::GaussianFrame {
         time: 0.75,
         gaussians: Some(proto_set(proto::Precision::F32, 2, 0.5)),
+        ..Default::default()
     };
     let frame = unpack_frame(&frame).unwrap();
     assert_eq!(frame.time, 0.75);
@@ -193,6 +194,7 @@ fn proto_frames_keep_their_time() {
     let missing = proto::GaussianFrame {
         time: 0.75,
         gaussians: None,
+        ..Default::default()
     };
     assert!(matches!(unpack_frame(&missing), Err(Error::Malformed(_))));
 }

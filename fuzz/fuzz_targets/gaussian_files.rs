@@ -1,5 +1,5 @@
-//! The readers of Gaussian files and payloads: 3DGS `.ply`, `.splat` and the `C4GS` codec.
-//! Input: `[format]bytes`.
+//! The readers of Gaussian files and payloads: 3DGS `.ply`, `.splat`, the `C4GS` codec and the
+//! compact 4D stream `C4GV`. Input: `[format]bytes`.
 //!
 //! `.ply` and `.splat` files come from other tools, so their readers return what a file holds
 //! (activated), which need not meet the canonical invariants (3DGS colours from negative SH
@@ -9,7 +9,7 @@
 //! exact, bit for bit.
 #![no_main]
 
-use c4g_renderer::formats::{c4gs, ply, splat};
+use c4g_renderer::formats::{c4gs, c4gv, ply, splat};
 use c4g_renderer::{
     Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, Rasterizer, RenderOptions,
 };
@@ -38,7 +38,7 @@ libfuzzer_sys::fuzz_target!(|input: &[u8]| {
     let Some((&format, bytes)) = input.split_first() else {
         return;
     };
-    match format % 3 {
+    match format % 4 {
         0 => {
             if let Ok(set) = ply::decode(bytes) {
                 renders_finite(&set);
@@ -51,6 +51,38 @@ libfuzzer_sys::fuzz_target!(|input: &[u8]| {
                 renders_finite(&set);
                 let again = splat::decode(&splat::encode(&set)).expect("splat round trip");
                 assert!(again.len() <= set.len());
+            }
+        }
+        3 => {
+            let whole = c4gv::decode(bytes);
+            // Fed byte by byte, a reader sees the same frames (and fails where the whole fails).
+            let mut decoder = c4gv::Decoder::new();
+            let mut trickled = Vec::new();
+            let mut failed = false;
+            for byte in bytes {
+                decoder.feed(std::slice::from_ref(byte));
+                loop {
+                    match decoder.next_frame() {
+                        Ok(Some(frame)) => trickled.push(frame),
+                        Ok(None) => break,
+                        Err(_) => {
+                            failed = true;
+                            break;
+                        }
+                    }
+                }
+                if failed {
+                    break;
+                }
+            }
+            if let Ok(frames) = whole {
+                assert!(!failed, "whole it decodes, byte by byte it fails");
+                assert_eq!(frames.len(), trickled.len());
+                for (time, set) in &frames {
+                    set.validate().expect("C4GV yields valid sets");
+                    renders_finite(set);
+                    assert!(time.is_finite());
+                }
             }
         }
         _ => {

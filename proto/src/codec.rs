@@ -62,4 +62,3 @@ impl<U: Message + Default> Decoder for StrictDecoder<U> {
         self.0.buffer_settings()
     }
 }
-

@@ -9,7 +9,8 @@
 mod camera;
 /// The crate's one error type.
 mod error;
-/// Files and payloads: 3DGS `.ply`, antimatter15 `.splat`, time series of sets, `C4GS` frames.
+/// Files and payloads: 3DGS `.ply`, antimatter15 `.splat`, time series of sets, `C4GS` frames,
+/// `C4GV` compact streams.
 pub mod formats;
 /// Gaussian sets: the canonical layout, columns, optional feature vectors.
 mod gaussians;

@@ -8,7 +8,7 @@ use std::io::{Cursor, Write};
 use std::path::Path;
 
 use c4g_proto::v1 as pb;
-use c4g_renderer::formats::{c4gs, ply, splat};
+use c4g_renderer::formats::{c4gs, c4gv, ply, splat};
 use c4g_renderer::{Gaussian, GaussianSet};
 use c4g_server::fuzzing::CLIP_MARK;
 use glam::{Quat, Vec3};
@@ -115,6 +115,24 @@ fn main() {
                 2,
                 &c4gs::encode([(0.25, &one)], c4gs::Precision::F16).expect("c4gs"),
             ),
+            tagged(
+                3,
+                &c4gv::encode([(0.0, &one), (0.1, &one), (0.2, &one)], &Default::default())
+                    .expect("c4gv"),
+            ),
+            tagged(
+                3,
+                &c4gv::encode(
+                    [(0.0, &one), (0.5, &one)],
+                    &c4gv::EncodeOptions {
+                        deflate: false,
+                        detect_static: false,
+                        keyframe_interval: 1,
+                        ..Default::default()
+                    },
+                )
+                .expect("c4gv"),
+            ),
         ],
     );
 
@@ -131,6 +149,8 @@ fn main() {
         (1, "", r#"{"trajectory":{"kind":"spiral","radii":[0.1,0.1,0.05],"focus_depth":2,"rotations":2,"z_rate":0.5},"frames":2,"width":16,"height":16}"#.to_owned()),
         (1, "", format!(r#"{{"cameras":[{camera},{camera}],"width":16,"height":16,"format":"alpha","keyframes":{{"count":2}}}}"#)),
         (2, "", r#"{"trajectory":{"kind":"dolly","distance":0.5},"steps":2,"seed":0,"caption":"a scene"}"#.to_owned()),
+        (8, "", r#"{"step":0.1,"position_error":0.001}"#.to_owned()),
+        (8, "", r#"{"fps":20,"quality":"fast","keyframe_interval":4}"#.to_owned()),
         (3, "max_frames=2&fps=4", String::new()),
         (4, "0", String::new()),
         (5, CLIP_MARK, String::new()),
@@ -142,7 +162,7 @@ fn main() {
         rest.iter()
             .map(|(route, head, body)| {
                 let mut input = vec![*route];
-                if !head.is_empty() || *route >= 3 {
+                if !head.is_empty() || (3..8).contains(route) {
                     input.extend_from_slice(head.as_bytes());
                     input.push(b'\n');
                 }

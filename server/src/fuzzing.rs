@@ -194,7 +194,7 @@ impl Edge {
         };
         let head = String::from_utf8_lossy(head).replace(CLIP_MARK, &self.clip_id);
         let id = &self.clip_id;
-        let (method, uri, content_type, body) = match route % 8 {
+        let (method, uri, content_type, body) = match route % 9 {
             0 => (
                 Method::POST,
                 format!("/v1/clips/{id}/gaussians"),
@@ -228,6 +228,12 @@ impl Edge {
             ),
             5 => (Method::GET, format!("/v1/clips/{head}"), "", body),
             6 => (Method::GET, format!("/v1/jobs?{head}"), "", body),
+            8 => (
+                Method::POST,
+                format!("/v1/clips/{id}/stream"),
+                "application/json",
+                rest,
+            ),
             _ => (Method::GET, format!("/v1/jobs/{head}"), "", body),
         };
         let (status, answer) = self.call(method, &uri, content_type, body.to_vec());

@@ -6,27 +6,25 @@ use std::sync::Arc;
 
 use axum::http::HeaderMap;
 use bytes::BytesMut;
-use c4g_engine::Encoding;
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_server::{C4g, C4gServer};
 use c4g_renderer::Trajectory;
 use tokio::sync::mpsc;
-use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
+use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::camera::{CameraSpec, IntrinsicsSpec};
 use crate::image_formats::{ImageFormat, encode_image};
 use crate::intake::{IntakeOptions, Media, MediaKind};
 use crate::keyframes::KeyframesSpec;
-use crate::quality::{Approximation, Preset, PruneSpec, QualitySpec};
-use crate::service::{PathRequest, Service, SetPlan, ViewRequest};
+use crate::quality::{Preset, PruneSpec, QualitySpec};
+use crate::service::{PathRequest, Service, ViewRequest};
 use crate::store::ClipRecord;
+use crate::streaming::{STREAM_AHEAD, Spacing, StreamRequest, check_compact, plan_sets};
 use crate::wire::{self, Precision};
 use crate::{AppState, ServiceError};
-
-/// Sets a stream decodes ahead of what the client has taken: the backpressure bound.
-const STREAM_AHEAD: usize = 4;
+use c4g_renderer::formats::c4gv::EncodeOptions;
 
 /// True when a request is a gRPC call.
 pub fn is_grpc(headers: &HeaderMap) -> bool {
@@ -199,23 +197,6 @@ fn nonzero(v: u32) -> Option<u32> {
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
 
-/// Where a stream's sets come from, decided on a work slot before the first is sent: keyframes
-/// decoded over all of `times` (or none: the stream decodes chunk by chunk as it goes), and the
-/// Gaussians pruning keeps.
-async fn plan_sets(
-    service: &Arc<Service>,
-    id: &str,
-    encoding: &Arc<Encoding>,
-    times: &[f64],
-    approximation: Approximation,
-) -> Result<Arc<SetPlan>, ServiceError> {
-    let (id, encoding, times) = (id.to_owned(), encoding.clone(), times.to_vec());
-    let plan = service
-        .work(move |service| service.plan_sets_now(&id, &encoding, &times, &approximation))
-        .await?;
-    Ok(Arc::new(plan))
-}
-
 #[tonic::async_trait]
 impl C4g for Grpc {
     async fn upload(
@@ -323,6 +304,7 @@ impl C4g for Grpc {
                 .map(|(t, set)| pb::GaussianFrame {
                     time: *t,
                     gaussians: Some(wire::proto(set, precision)),
+                    c4gv: Vec::new(),
                 })
                 .collect(),
         }))
@@ -336,90 +318,60 @@ impl C4g for Grpc {
     ) -> Result<Response<Self::StreamGaussiansStream>, Status> {
         let request = request.into_inner();
         let service = self.service()?.clone();
-        let record = service.store.get(&request.clip_id)?;
-        let (first, last) = record.span();
-        let (start, end) = (request.start.unwrap_or(first), request.end.unwrap_or(last));
-        let step = match request.spacing {
-            Some(pb::stream_gaussians_request::Spacing::Step(step)) => step,
-            Some(pb::stream_gaussians_request::Spacing::Fps(fps)) => 1.0 / fps,
-            None if record.source.fps > 0.0 => 1.0 / record.source.fps,
-            None => 0.1,
+        let spacing = match request.spacing {
+            Some(pb::stream_gaussians_request::Spacing::Step(step)) => Spacing::Step(step),
+            Some(pb::stream_gaussians_request::Spacing::Fps(fps)) => Spacing::Fps(fps),
+            None => Spacing::Source,
         };
-        if !(step.is_finite() && step > 0.0) {
-            return Err(ServiceError::invalid(format!(
-                "the step between sets must be a positive number of seconds, got {step}"
-            ))
-            .into());
-        }
-        service.check_times(&record, &[start, end])?;
-        if start > end {
-            return Err(ServiceError::invalid(format!("start {start} is after end {end}")).into());
-        }
-        // Counted in f64 first: a tiny step makes more sets than a usize holds.
-        let sets = ((end - start) / step + 1e-9).floor() + 1.0;
-        if sets > service.limits.max_times as f64 {
-            return Err(ServiceError::TooLarge(format!(
-                "{sets:.0} sets in one stream; at most {} (C4G_MAX_TIMES): use a larger step",
-                service.limits.max_times
-            ))
-            .into());
-        }
-        let count = sets as usize;
-        let times: Vec<f64> = (0..count)
-            .map(|i| (start + step * i as f64).min(end))
-            .collect();
-        let quality = quality_spec(
-            request.quality,
-            request.keyframes.as_ref(),
-            request.prune.as_ref(),
-        )?;
-        let approximation = service.approximation(&record, &quality, &times)?;
-        let encoding = service.store.encoding(&record.id).await?;
+        let stream = StreamRequest {
+            start: request.start,
+            end: request.end,
+            spacing,
+            quality: quality_spec(
+                request.quality,
+                request.keyframes.as_ref(),
+                request.prune.as_ref(),
+            )?,
+        };
         let precision: Precision = wire::precision_from_proto(request.precision());
-        let (tx, rx) = mpsc::channel(STREAM_AHEAD);
-        tokio::spawn(async move {
-            // With keyframes, those over the whole range are decoded first; each chunk is then
-            // interpolated from them.
-            let plan = match plan_sets(&service, &record.id, &encoding, &times, approximation).await
-            {
-                Ok(plan) => plan,
-                Err(e) => {
-                    let _ = tx.send(Err(e.into())).await;
-                    return;
-                }
-            };
-            // Decode in the engine's batch size; a send waits while the client is behind.
-            let batch = service
-                .engine
-                .decode_batch_size(encoding.frame_count())
-                .max(1);
-            for chunk in times.chunks(batch) {
-                let chunk = chunk.to_vec();
-                let encoding = encoding.clone();
-                let plan = plan.clone();
-                let frames = service
-                    .work(move |service| service.sets_now(&plan, &encoding, &chunk))
-                    .await;
-                match frames {
-                    Ok(frames) => {
-                        for (t, set) in frames {
-                            let frame = pb::GaussianFrame {
-                                time: t,
-                                gaussians: Some(wire::proto(&set, precision)),
-                            };
-                            if tx.send(Ok(frame)).await.is_err() {
-                                return; // the client went away
-                            }
-                        }
-                    }
-                    Err(e) => {
-                        let _ = tx.send(Err(e.into())).await;
-                        return;
-                    }
-                }
+        let compact = match request.compact {
+            Some(c) => {
+                let defaults = EncodeOptions::default();
+                let options = EncodeOptions {
+                    position_error: Some(c.position_error)
+                        .filter(|&e| e != 0.0)
+                        .unwrap_or(defaults.position_error),
+                    keyframe_interval: nonzero(c.keyframe_interval)
+                        .unwrap_or(defaults.keyframe_interval),
+                    ..defaults
+                };
+                check_compact(&options)?;
+                Some(options)
             }
-        });
-        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+            None => None,
+        };
+        let sets = service.stream(&request.clip_id, &stream).await?;
+        let frames: BoxStream<pb::GaussianFrame> = match compact {
+            Some(options) => Box::pin(sets.compact(options).map(|piece| match piece {
+                Ok((time, bytes)) => Ok(pb::GaussianFrame {
+                    time,
+                    gaussians: None,
+                    c4gv: bytes,
+                }),
+                Err(e) => Err(e.into()),
+            })),
+            None => Box::pin(
+                ReceiverStream::new(sets.sets).map(move |frame| match frame {
+                    Ok((time, set)) => Ok(pb::GaussianFrame {
+                        time,
+                        gaussians: Some(wire::proto(&set, precision)),
+                        c4gv: Vec::new(),
+                    }),
+                    Err(e) => Err(e.into()),
+                }),
+            ),
+        };
+        Ok(Response::new(frames))
     }
 
     async fn render(

@@ -13,13 +13,14 @@
 //! | `keyframes` | keyframed decoding as clients ask for it, checked against the limits |
 //! | `quality` | the speed/accuracy presets (exact, balanced, fast) and pruning as clients ask for it |
 //! | `pruning` | which Gaussians a pruned request keeps: each clip's scene analysis, cached |
+//! | `streaming` | streams of sets over a time range, planned once, decoded ahead of the reader |
 //! | `renderer` | the rasterizer choice |
 //! | `image_formats` | what renders answer with: PNG, raw depth and alpha, MP4 |
 //! | `service_error` | [`ServiceError`]: what went wrong, in domain words, and its kinds |
 //! | [`faults`] | fault points where tests stop the server to kill it (off unless named) |
 //! | `fuzzing` | the fuzz targets' entry points (feature `fuzzing`): untrusted bytes in, bugs out |
 //! | *the edge* | |
-//! | `api` | the REST routes, one file per endpoint group; `/openapi.json` and `/docs` |
+//! | `api` | the REST routes, one file per endpoint group; `/openapi.json`, `/docs` and the viewer (`/viewer`, files in `server/viewer/`) |
 //! | `grpc` | the gRPC service `c4g.v1.C4G`, health and reflection, on the same port |
 //! | `workers` | the gRPC service `c4g.v1.Jobs` that refinement workers pull from |
 //! | `wire` | Gaussian sets as JSON and gRPC messages (the binary `C4GS` codec is the renderer's) |
@@ -55,6 +56,7 @@ pub mod service;
 mod service_error;
 mod state;
 pub mod store;
+mod streaming;
 mod wire;
 mod work;
 mod workers;

@@ -567,6 +567,27 @@ pub struct SetPlan {
     keep: Option<Vec<bool>>,
 }
 
+impl SetPlan {
+    /// The Gaussians (of those kept) that never move, when keyframes show it: interpolation
+    /// between keyframes that agree gives the same values. `None` for an exact plan.
+    pub fn static_mask(
+        &self,
+        options: &c4g_renderer::formats::c4gv::EncodeOptions,
+    ) -> Option<Vec<bool>> {
+        let track = self.track.as_ref()?;
+        let sets: Vec<GaussianSet> = match &self.keep {
+            Some(keep) => track
+                .sets()
+                .iter()
+                .map(|set| set.select(keep))
+                .collect::<Result<_, _>>()
+                .ok()?,
+            None => track.sets().to_vec(),
+        };
+        crate::streaming::static_mask(&sets, options)
+    }
+}
+
 /// The Gaussians of each set that `keep` keeps (all of them without it).
 fn prune(
     keep: Option<&[bool]>,

@@ -256,6 +256,7 @@ fn a_real_video_goes_through_upload_decode_render_and_stream_over_http_and_grpc(
                 keyframes: None,
                 quality: 0,
                 prune: None,
+                compact: None,
             })
             .await
             .unwrap()

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::Context as _;
-use c4g_client::{Precision, Spacing, StreamOptions};
+use c4g_client::{Compact, Precision, Spacing, StreamOptions};
 use futures_util::StreamExt;
 use serde_json::json;
 
@@ -36,6 +36,10 @@ pub struct Args {
     /// Precision on the wire; f16 halves the transfer.
     #[arg(long, value_enum, default_value = "f32")]
     precision: PrecisionArg,
+    /// Receive the compact 4D stream (C4GV) with positions within this many scene units (1e-5
+    /// to 1; e.g. 1e-3), a fraction of the bytes of f32 sets.
+    #[arg(long, value_name = "UNITS")]
+    compact: Option<f64>,
     /// Write one .ply per set into this directory (frame-00000-t0.500.ply, ...).
     #[arg(short, long, value_name = "DIR")]
     output: Option<PathBuf>,
@@ -58,6 +62,10 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
             PrecisionArg::F16 => Precision::F16,
         },
         approximation: args.approximation.approximation(),
+        compact: args.compact.map(|position_error| Compact {
+            position_error,
+            ..Compact::default()
+        }),
     };
     if let Some(dir) = &args.output {
         tokio::fs::create_dir_all(dir)

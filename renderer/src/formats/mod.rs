@@ -5,12 +5,16 @@
 //! - [`splat`]: antimatter15's compact `.splat` (32 bytes a Gaussian), for web viewers;
 //! - [`series`]: a time series of Gaussian sets: a directory of `.ply` files and a JSON index;
 //! - [`c4gs`]: the service's packed `C4GS` frames (`f32` or `f16` columns), and the column
-//!   packing the gRPC messages share with it.
+//!   packing the gRPC messages share with it;
+//! - [`c4gv`]: `C4GV`, a compact stream of one clip's sets over a time range: quantised within
+//!   stated error bounds, static Gaussians once, the rest as deltas with keyframes to seek to,
+//!   decodable frame by frame as bytes arrive.
 //!
 //! Every reader fails with a [`RendererError::Format`](crate::RendererError::Format) that says
 //! what is wrong and where, never with a panic, whatever the bytes.
 
 pub mod c4gs;
+pub mod c4gv;
 pub mod ply;
 pub mod series;
 pub mod splat;

@@ -8,6 +8,8 @@ mod jobs;
 mod json;
 pub(crate) mod models;
 mod render;
+mod stream;
+mod viewer;
 
 use axum::Router;
 use axum::extract::DefaultBodyLimit;
@@ -31,6 +33,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/clips/{id}/frames/{index}", get(clips::frame))
         .route("/v1/clips/{id}/gaussians", post(gaussians::decode))
         .route("/v1/clips/{id}/render", post(render::render))
+        .route("/v1/clips/{id}/stream", post(stream::stream))
         .route("/v1/clips/{id}/refine", post(jobs::submit))
         .route("/v1/jobs", get(jobs::list))
         // Cancelling is POST .../cancel; a job's record stays readable (there is no DELETE).
@@ -40,7 +43,8 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/jobs/{id}/result", get(jobs::result))
         .layer(DefaultBodyLimit::max(json::MAX_JSON_BYTES))
         .with_state(state.clone());
-    // The API key guards /v1 and gRPC; health, readiness, metrics and docs stay open.
+    // The API key guards /v1 and gRPC; health, readiness, metrics, docs and the viewer's files
+    // stay open (the viewer's own /v1 calls send the key its user gives it).
     let guarded = rest
         .merge(crate::grpc::routes(state.clone()).into_axum_router())
         .layer(axum::middleware::from_fn_with_state(
@@ -53,6 +57,9 @@ pub fn router(state: AppState) -> Router {
         .route("/metrics", get(docs::metrics))
         .route("/openapi.json", get(docs::openapi))
         .route("/docs", get(docs::page))
+        .route("/viewer", get(viewer::page))
+        .route("/viewer/{clip}", get(viewer::clip_page))
+        .route("/viewer/assets/{name}", get(viewer::asset))
         .with_state(state)
         .merge(guarded)
         .fallback(docs::not_found)

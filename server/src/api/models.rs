@@ -27,6 +27,9 @@ pub fn describe(service: &Service) -> Value {
         "feature_lifting": m.feature_decoder_width(),
         "time_policy": engine.time_policy().name(),
         "renderer": service.renderer.name(),
+        // Which pixels a Gaussian reaches in this server's renders: what a client that
+        // rasterizes sets itself (the viewer) needs to draw the same image.
+        "footprint": service.renderer.footprint().as_str(),
         "store_key": service.model_key(),
         "limits": {
             "context_frames": service.limits.context_frames,

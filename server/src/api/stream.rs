@@ -1,0 +1,100 @@
+//! `POST /v1/clips/{id}/stream`: the sets over a time range as one compact 4D stream (`C4GV`,
+//! `application/x-c4g-stream`), in a chunked HTTP body that a browser reads as it arrives.
+//!
+//! Chunked HTTP rather than a WebSocket: the data flows one way, `fetch()` hands a page the body
+//! piece by piece (`response.body.getReader()`), aborting the fetch ends the decoding (the reader
+//! is gone, so the next set is not decoded), HTTP/1.1 proxies pass it as they are, and the errors
+//! before the first byte are the service's usual JSON answers. An error after the first byte
+//! cannot change the status: the body then ends without the stream's index record, which a
+//! reader sees as a stream cut short (and the server logs why).
+
+use axum::body::Body;
+use axum::extract::State;
+use axum::http::header;
+use axum::response::{IntoResponse, Response};
+use c4g_renderer::formats::c4gv::EncodeOptions;
+use futures_util::StreamExt;
+use serde::Deserialize;
+use serde_json::Value;
+
+use super::json::{self, ClipId, JsonBody};
+use crate::keyframes::KeyframesSpec;
+use crate::quality::{Preset, PruneSpec, QualitySpec};
+use crate::streaming::{Spacing, StreamRequest, check_compact};
+use crate::{AppState, ServiceError};
+
+/// The stream's content type.
+pub const CONTENT_TYPE: &str = "application/x-c4g-stream";
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Request {
+    start: Option<f64>,
+    end: Option<f64>,
+    /// Seconds between sets (or `fps`; default the clip's frame rate).
+    step: Option<f64>,
+    fps: Option<f64>,
+    quality: Option<Preset>,
+    keyframes: Option<KeyframesSpec>,
+    prune: Option<PruneSpec>,
+    /// The largest error of a position coordinate, scene units (default 1e-3).
+    position_error: Option<f64>,
+    /// A full set every this many sets, for seeking (default 16).
+    keyframe_interval: Option<u32>,
+}
+
+pub async fn stream(
+    State(state): State<AppState>,
+    ClipId(id): ClipId,
+    JsonBody(body): JsonBody<Value>,
+) -> Result<Response, ServiceError> {
+    let service = state.service()?.clone();
+    json::check_body(&body, service.limits.max_times)?;
+    let request: Request = json::typed(body)?;
+    let spacing = match (request.step, request.fps) {
+        (Some(step), None) => Spacing::Step(step),
+        (None, Some(fps)) => Spacing::Fps(fps),
+        (None, None) => Spacing::Source,
+        (Some(_), Some(_)) => {
+            return Err(ServiceError::invalid("give \"step\" or \"fps\", not both"));
+        }
+    };
+    let defaults = EncodeOptions::default();
+    let options = EncodeOptions {
+        position_error: request.position_error.unwrap_or(defaults.position_error),
+        keyframe_interval: request
+            .keyframe_interval
+            .unwrap_or(defaults.keyframe_interval),
+        ..defaults
+    };
+    check_compact(&options)?;
+    let stream = StreamRequest {
+        start: request.start,
+        end: request.end,
+        spacing,
+        quality: QualitySpec {
+            preset: request.quality,
+            keyframes: request.keyframes,
+            prune: request.prune,
+        },
+    };
+    let sets = service.stream(&id, &stream).await?;
+    let count = sets.times.len();
+    let body = sets.compact(options).map(move |piece| {
+        piece.map(|(_, bytes)| bytes).map_err(|e| {
+            tracing::warn!(clip = %id, "a compact stream ended early: {e}");
+            std::io::Error::other(e.to_string())
+        })
+    });
+    Ok((
+        [
+            (header::CONTENT_TYPE, CONTENT_TYPE.to_owned()),
+            (
+                header::HeaderName::from_static("x-c4g-sets"),
+                count.to_string(),
+            ),
+        ],
+        Body::from_stream(body),
+    )
+        .into_response())
+}

@@ -1,0 +1,208 @@
+// Drives the viewer in Chromium for tests/e2e/viewer.rs, which starts the server, uploads the
+// moving clip, runs this script and judges what it writes (PSNR against the server's renders).
+//
+//   node viewer.mjs --base http://127.0.0.1:PORT --clip ID --static-frame frame.png --out DIR
+//                   [--size 256] [--chromium /usr/bin/chromium]
+//
+// In DIR: moving-0.png, moving-1.png, moving-2.png (the canvas at three times, the last from an
+// orbited camera, with exact f32 sets), moving-f16.png (the last time again, with the f16 sets a
+// user's page fetches), static-0.png and static-1.png (a clip of one frame repeated, uploaded
+// through the page's file input, at its second and last time), download.ply and download.splat
+// (the download buttons' files), page.png (the page showing a comparison) and result.json: for
+// each screenshot the render request of the view it shows (time, camera, size), the PSNR the
+// page's own "Compare with server" reported in each view mode, and the frames playing showed.
+
+import { chromium } from 'playwright-core';
+import { mkdir, readFile, writeFile } from 'node:fs/promises';
+import path from 'node:path';
+
+const TIMEOUT_MS = 180_000;
+
+function args() {
+  const out = { size: '256', chromium: '/usr/bin/chromium' };
+  const argv = process.argv.slice(2);
+  for (let i = 0; i < argv.length; i += 2) {
+    if (!argv[i].startsWith('--') || argv[i + 1] === undefined) throw new Error(`bad argument ${argv[i]}`);
+    out[argv[i].slice(2).replace(/-(.)/g, (_, c) => c.toUpperCase())] = argv[i + 1];
+  }
+  for (const needed of ['base', 'clip', 'staticFrame', 'out']) {
+    if (!out[needed]) throw new Error(`--${needed} is required`);
+  }
+  return out;
+}
+
+const viewerState = (page) => page.evaluate(() => window.c4gViewer?.state() ?? null);
+
+/** Waits until the page shows frame `index` of clip `clip` with nothing left to draw. */
+async function settled(page, index, clip) {
+  await page.waitForFunction(
+    ([i, c]) => {
+      const s = window.c4gViewer?.state();
+      if (!s) return false;
+      if (s.error) return true;
+      return (c === null || s.clip === c) && !s.dirty && s.shown.index === i;
+    },
+    [index, clip],
+    { timeout: TIMEOUT_MS, polling: 50 },
+  );
+  // Two animation frames: the last draw is presented, not only issued.
+  await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
+  const s = await viewerState(page);
+  if (s.error) throw new Error(`the viewer reports: ${s.error}`);
+  return s;
+}
+
+/** Moves the time slider to `index` with the keyboard, as a user would. */
+async function scrub(page, index) {
+  const slider = page.locator('#time');
+  await slider.focus();
+  await page.keyboard.press('Home');
+  for (let k = 0; k < index; k++) await page.keyboard.press('ArrowRight');
+}
+
+/**
+ * The canvas as PNG: its drawing buffer, as `toDataURL` gives it. (An element screenshot
+ * resamples the canvas wherever the page lays it out at a fractional pixel position.)
+ */
+async function shoot(page, file) {
+  const url = await page.evaluate(() => document.getElementById('view').toDataURL('image/png'));
+  await writeFile(file, Buffer.from(url.slice(url.indexOf(',') + 1), 'base64'));
+  return path.basename(file);
+}
+
+/** Clicks "Compare with server" in `mode`; the PSNR the page reports. */
+async function compareIn(page, mode) {
+  await page.selectOption('#mode', mode);
+  const s = await viewerState(page);
+  await settled(page, s.index, s.clip);
+  const drawn = (await viewerState(page)).shown.draw;
+  await page.click('#compare');
+  await page.waitForFunction(
+    (d) => {
+      const s = window.c4gViewer.state();
+      return s.error || (s.comparison && s.comparison.draw === d);
+    },
+    drawn,
+    { timeout: TIMEOUT_MS, polling: 50 },
+  );
+  const after = await viewerState(page);
+  if (after.error) throw new Error(`the viewer reports: ${after.error}`);
+  return after.comparison.psnr;
+}
+
+/** Clicks a download button; the saved file's name and size. */
+async function download(page, format, out) {
+  const [file] = await Promise.all([page.waitForEvent('download'), page.click(`#download-${format}`)]);
+  const saved = path.join(out, `download.${format}`);
+  await file.saveAs(saved);
+  return { name: file.suggestedFilename(), file: path.basename(saved) };
+}
+
+/** Plays until three frames have been shown, then pauses; the frames shown while playing. */
+async function play(page) {
+  await page.click('#play');
+  await page.waitForFunction(() => window.c4gViewer.state().played.length >= 3, null, {
+    timeout: TIMEOUT_MS,
+    polling: 20,
+  });
+  await page.click('#play');
+  return (await viewerState(page)).played;
+}
+
+async function main() {
+  const a = args();
+  await mkdir(a.out, { recursive: true });
+  const browser = await chromium.launch({
+    executablePath: a.chromium,
+    headless: true,
+    // No GPU here: WebGL2 runs on SwiftShader, Chromium's CPU implementation.
+    args: ['--headless', '--no-sandbox', '--disable-gpu', '--disable-background-networking'],
+  });
+  const result = { browser: browser.version(), moving: [], static: [], compare: {} };
+  try {
+    const context = await browser.newContext({ viewport: { width: 1000, height: 800 }, deviceScaleFactor: 1 });
+    const page = await context.newPage();
+    page.on('console', (m) => {
+      if (m.type() === 'error' || m.type() === 'warning') console.error(`[page ${m.type()}] ${m.text()}`);
+    });
+    page.on('pageerror', (e) => console.error(`[page error] ${e.message}`));
+    page.setDefaultTimeout(TIMEOUT_MS);
+
+    // Exact sets first (f32 on the wire): the images then differ by the renderers alone.
+    await page.goto(`${a.base}/viewer/${a.clip}?size=${a.size}&precision=f32`);
+    let s = await settled(page, 0, a.clip);
+    result.target = s.target;
+    result.footprint = s.footprint;
+    result.times = s.times;
+    const last = s.times.length - 1;
+    // The second time and the last from the first camera (frames apart: the scene moves), then
+    // the middle one from an orbited camera.
+    const picks = [1, last, Math.floor(last / 2)];
+    for (const [k, index] of picks.entries()) {
+      await scrub(page, index);
+      if (k === 2) {
+        const box = await page.locator('#view').boundingBox();
+        const [x, y] = [box.x + box.width / 2, box.y + box.height / 2];
+        await page.mouse.move(x, y);
+        await page.mouse.down();
+        await page.mouse.move(x + 40, y + 16, { steps: 4 });
+        await page.mouse.up();
+      }
+      s = await settled(page, index, a.clip);
+      const request = await page.evaluate(() => window.c4gViewer.request());
+      const file = await shoot(page, path.join(a.out, `moving-${k}.png`));
+      result.moving.push({ index, t: s.times[index], screenshot: file, request });
+    }
+    for (const mode of ['color', 'depth', 'alpha']) result.compare[mode] = await compareIn(page, mode);
+    result.compare.color = await compareIn(page, 'color');
+    // The page as it looks then (for docs/viewer/): the WebGL view beside the server's.
+    const bottom = await page.locator('#status').evaluate((e) => e.getBoundingClientRect().bottom);
+    const clip = { x: 0, y: 0, width: 800, height: Math.ceil(bottom) + 8 };
+    await page.screenshot({ path: path.join(a.out, 'page.png'), clip });
+    result.downloads = {};
+    for (const format of ['ply', 'splat']) result.downloads[format] = await download(page, format, a.out);
+    result.played = await play(page);
+
+    // The page as a user opens it (f16 sets), at the last time.
+    await page.goto(`${a.base}/viewer/${a.clip}?size=${a.size}`);
+    await settled(page, 0, a.clip);
+    await scrub(page, last);
+    s = await settled(page, last, a.clip);
+    result.f16 = {
+      index: last,
+      t: s.times[last],
+      screenshot: await shoot(page, path.join(a.out, 'moving-f16.png')),
+      request: await page.evaluate(() => window.c4gViewer.request()),
+    };
+
+    // The static clip, through the page's upload: one frame four times (fps 10: 0 to 0.3 s).
+    const frame = await readFile(a.staticFrame);
+    const files = [0, 1, 2, 3].map((i) => ({ name: `frame-${i}.png`, mimeType: 'image/png', buffer: frame }));
+    await page.setInputFiles('#upload', files);
+    await page.waitForFunction(
+      (moving) => {
+        const s = window.c4gViewer.state();
+        return s.error || (s.clip && s.clip !== moving && !s.dirty);
+      },
+      a.clip,
+      { timeout: TIMEOUT_MS, polling: 100 },
+    );
+    s = await settled(page, 0, null);
+    result.staticClip = s.clip;
+    result.staticUrl = new URL(page.url()).pathname;
+    for (const [k, index] of [1, s.times.length - 1].entries()) {
+      await scrub(page, index);
+      s = await settled(page, index, result.staticClip);
+      const file = await shoot(page, path.join(a.out, `static-${k}.png`));
+      result.static.push({ index, t: s.times[index], screenshot: file });
+    }
+  } finally {
+    await browser.close();
+  }
+  await writeFile(path.join(a.out, 'result.json'), JSON.stringify(result, null, 1));
+}
+
+main().catch((e) => {
+  console.error(e.stack || String(e));
+  process.exit(1);
+});
