@@ -386,6 +386,28 @@ impl JobStore {
         }
     }
 
+    /// Puts a job `worker` took back in the queue without counting the attempt: the server
+    /// could not hand it over for a passing reason (its work queue was full), which says
+    /// nothing about the job.
+    pub fn release(&self, id: &str, worker: &str, why: &str) -> Result<JobRecord, ServiceError> {
+        self.update(id, |record, lease_until| {
+            Self::check_owner(record, worker)?;
+            *lease_until = None;
+            record.worker = None;
+            record.progress = None;
+            record.history.push(format!(
+                "attempt {}: not handed to {worker} ({why}); queued again",
+                record.attempt
+            ));
+            record.state = if record.cancel_requested {
+                JobState::Cancelled
+            } else {
+                JobState::Queued
+            };
+            Ok(())
+        })
+    }
+
     fn check_owner(record: &JobRecord, worker: &str) -> Result<(), ServiceError> {
         if record.state != JobState::Running || record.worker.as_deref() != Some(worker) {
             return Err(ServiceError::invalid(format!(
@@ -653,6 +675,25 @@ mod tests {
         assert_eq!(failed.state, JobState::Failed);
         assert!(failed.error.unwrap().contains("w2 stopped responding"));
         assert_eq!(failed.history.len(), 2);
+    }
+
+    #[tokio::test]
+    async fn a_job_released_for_a_passing_reason_keeps_its_attempts() {
+        let dir = tempfile::tempdir().unwrap();
+        let jobs = store(dir.path(), 60_000);
+        let job = jobs.create("clip", serde_json::json!({})).unwrap();
+        // Busier than the job has attempts: never failed for it.
+        for _ in 0..5 {
+            let taken = jobs.take("w1", Duration::ZERO).await.unwrap().unwrap();
+            assert_eq!(taken.attempt, 1);
+            let released = jobs
+                .release(&job.id, "w1", "the server is overloaded")
+                .unwrap();
+            assert_eq!((released.state, released.attempt), (JobState::Queued, 1));
+        }
+        // Only its taker may release it.
+        jobs.take("w1", Duration::ZERO).await.unwrap().unwrap();
+        assert!(jobs.release(&job.id, "w2", "busy").is_err());
     }
 
     #[tokio::test]

@@ -39,6 +39,25 @@ pub enum Spacing {
     Source,
 }
 
+/// The largest `step` (seconds) or `fps` a stream may state: beyond any clip's length, or rate.
+pub const MAX_SPACING: f64 = 1e6;
+
+impl Spacing {
+    fn step(self) -> Option<f64> {
+        match self {
+            Self::Step(step) => Some(step),
+            _ => None,
+        }
+    }
+
+    fn fps(self) -> Option<f64> {
+        match self {
+            Self::Fps(fps) => Some(fps),
+            _ => None,
+        }
+    }
+}
+
 /// What a client asks a stream for.
 #[derive(Debug, Clone)]
 pub struct StreamRequest {
@@ -71,17 +90,26 @@ impl Service {
         let record = self.store.get(id)?;
         let (first, last) = record.span();
         let (start, end) = (request.start.unwrap_or(first), request.end.unwrap_or(last));
+        for (name, value) in [
+            ("step", request.spacing.step()),
+            ("fps", request.spacing.fps()),
+        ] {
+            if let Some(v) = value
+                && !(v > 0.0 && v <= MAX_SPACING)
+            {
+                return Err(ServiceError::invalid(format!(
+                    "{name} must be above 0 and at most {MAX_SPACING:e}, got {v}"
+                )));
+            }
+        }
         let step = match request.spacing {
             Spacing::Step(step) => step,
             Spacing::Fps(fps) => 1.0 / fps,
             Spacing::Source if record.source.fps > 0.0 => 1.0 / record.source.fps,
             Spacing::Source => 0.1,
         };
-        if !(step.is_finite() && step > 0.0) {
-            return Err(ServiceError::invalid(format!(
-                "the step between sets must be a positive number of seconds, got {step}"
-            )));
-        }
+        // Positive now, or infinite: a rate so low that its step overflows is a step past any
+        // span, which makes one set, at the start.
         self.check_times(&record, &[start, end])?;
         if start > end {
             return Err(ServiceError::invalid(format!(
@@ -97,7 +125,10 @@ impl Service {
             )));
         }
         let times: Vec<f64> = (0..sets as usize)
-            .map(|i| (start + step * i as f64).min(end))
+            .map(|i| match i {
+                0 => start,
+                i => (start + step * i as f64).min(end),
+            })
             .collect();
         let approximation = self.approximation(&record, &request.quality, &times)?;
         let encoding = self.store.encoding(&record.id).await?;

@@ -7,7 +7,7 @@ use c4g_proto::v1 as pb;
 use c4g_proto::v1::jobs_server::{Jobs, JobsServer};
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::jobs::Progress;
+use crate::jobs::{JobState, Progress};
 use crate::refine::build_job;
 use crate::service::Service;
 use crate::{AppState, ServiceError, ServiceErrorKind};
@@ -63,13 +63,23 @@ impl Jobs for Workers {
                     tracing::info!(job = %record.id, worker = %request.worker, attempt = record.attempt, "job taken");
                     return Ok(Response::new(pb::TakeResponse { job: Some(job) }));
                 }
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        ServiceErrorKind::Overloaded | ServiceErrorKind::Busy
+                    ) =>
+                {
+                    // A full work queue passes: the job goes back as it was, and the worker asks
+                    // again later (an attempt spent here could fail a job for being busy).
+                    service
+                        .jobs
+                        .release(&record.id, &request.worker, &e.to_string())?;
+                    return Ok(Response::new(pb::TakeResponse { job: None }));
+                }
                 Err(e) => {
                     // Nothing a worker can do about a job it cannot be given: it fails, and the
                     // worker gets the next one.
-                    let retryable = matches!(
-                        e.kind(),
-                        ServiceErrorKind::Internal | ServiceErrorKind::Overloaded
-                    );
+                    let retryable = e.kind() == ServiceErrorKind::Internal;
                     service.jobs.fail(
                         &record.id,
                         &request.worker,
@@ -156,7 +166,12 @@ impl Jobs for Workers {
             self.service()?
                 .jobs
                 .fail(&r.job_id, &r.worker, &r.error, r.retryable, r.cancelled)?;
-        tracing::warn!(job = %record.id, state = ?record.state, "worker reported: {}", r.error);
+        // A cancellation the client asked for is the job doing as told, not a failure.
+        if record.state == JobState::Cancelled {
+            tracing::info!(job = %record.id, "worker reported: {}", r.error);
+        } else {
+            tracing::warn!(job = %record.id, state = ?record.state, "worker reported: {}", r.error);
+        }
         Ok(Response::new(pb::FailResponse {}))
     }
 }

@@ -131,29 +131,29 @@ function reconstruct(cells, count, ids, steps, frame, what) {
   const { means, scales, rotations, opacities, colors } = frame;
   const [dp, dl, dr, dop, dc] = steps;
   const f = Math.fround;
+  const finite = Number.isFinite;
   for (let g = 0; g < count; g++) {
     const i = ids[g];
-    const c = (k) => cells[k * count + g];
+    let ok = true;
     for (let k = 0; k < 3; k++) {
-      means[3 * i + k] = f(c(k) * dp);
-      scales[3 * i + k] = f(Math.exp(c(3 + k) * dl));
+      const p = (means[3 * i + k] = f(cells[k * count + g] * dp));
+      const s = (scales[3 * i + k] = f(Math.exp(cells[(3 + k) * count + g] * dl)));
+      const c = (colors[3 * i + k] = f(cells[(11 + k) * count + g] * dc));
+      // What GaussianSet::validate holds the Rust decoder's sets to (rotations are unit below).
+      ok = ok && finite(p) && finite(s) && finite(c) && c >= 0;
     }
-    const w = c(6) * dr, x = c(7) * dr, y = c(8) * dr, z = c(9) * dr;
+    const w = cells[6 * count + g] * dr;
+    const x = cells[7 * count + g] * dr;
+    const y = cells[8 * count + g] * dr;
+    const z = cells[9 * count + g] * dr;
     const norm = Math.sqrt(w * w + x * x + y * y + z * z);
-    if (norm === 0 || !Number.isFinite(norm)) throw fail(`${what}: Gaussian ${i}'s rotation has zero norm`);
+    if (norm === 0 || !finite(norm)) throw fail(`${what}: Gaussian ${i}'s rotation has zero norm`);
     rotations[4 * i] = f(w / norm);
     rotations[4 * i + 1] = f(x / norm);
     rotations[4 * i + 2] = f(y / norm);
     rotations[4 * i + 3] = f(z / norm);
-    opacities[i] = f(c(10) * dop);
-    for (let k = 0; k < 3; k++) colors[3 * i + k] = f(c(11 + k) * dc);
-    // What GaussianSet::validate holds the Rust decoder's sets to (rotations are unit by now).
-    const bad =
-      ![means[3 * i], means[3 * i + 1], means[3 * i + 2]].every(Number.isFinite) ||
-      ![scales[3 * i], scales[3 * i + 1], scales[3 * i + 2]].every(Number.isFinite) ||
-      !(opacities[i] >= 0 && opacities[i] <= 1) ||
-      ![colors[3 * i], colors[3 * i + 1], colors[3 * i + 2]].every((v) => Number.isFinite(v) && v >= 0);
-    if (bad) throw fail(`${what}: Gaussian ${i} decodes to values outside the canonical layout`);
+    const o = (opacities[i] = f(cells[10 * count + g] * dop));
+    if (!ok || !(o >= 0 && o <= 1)) throw fail(`${what}: Gaussian ${i} decodes to values outside the canonical layout`);
   }
 }
 

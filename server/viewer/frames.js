@@ -203,13 +203,13 @@ export class FrameSource {
         this.pump();
       },
       (error) => {
-        if (this.run !== run) return; // given up for another run, or closed
+        // Given up for another run, or closed (the run stays, aborted).
+        if (this.run !== run || this.closed) return;
         this.run = null;
-        if (this.closed) return;
         if (this.retried(error)) return;
         if (error instanceof ApiError && error.status === 404 && this.requests === 1) {
           // A server from before the stream: the C4GS decodes it has.
-          console.warn(`no ${error.message}: falling back to C4GS sets`);
+          console.warn(`the server has no compact stream (${error.message}): C4GS sets instead`);
           this.kind = 'c4gs';
           this.pump();
           return;

@@ -384,7 +384,7 @@ window.c4gViewer = {
           bytes: state.source.bytes,
           requests: state.source.requests,
           positionError: state.source.positionError,
-          precision: state.source.precision,
+          precision: state.source.kind === 'c4gs' ? state.source.precision : null,
         }
       : null,
   }),

@@ -44,12 +44,11 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::Cursor;
-use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use c4g_e2e::{Server, binary, peak_rss, synthetic_clip, workspace};
+use c4g_e2e::{RefinerWorker, Server, peak_rss, synthetic_clip};
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
 use reqwest::StatusCode;
@@ -992,15 +991,6 @@ fn final_check(soak: &Soak) {
     println!("jobs: {} submitted, ended {states:?}", jobs.len());
 }
 
-struct Worker(Child);
-
-impl Drop for Worker {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
 fn main() {
     if std::env::var_os("ORT_DYLIB_PATH").is_none() {
         eprintln!("set ORT_DYLIB_PATH (scripts/env.sh)");
@@ -1014,26 +1004,7 @@ fn main() {
         .map_or(1, |s| s.parse().expect("C4G_SOAK_SEED: an integer"));
 
     let mut server = Server::start(&[]);
-    let mut worker = Worker(
-        Command::new(binary("c4g-refiner"))
-            .current_dir(workspace())
-            .args([
-                "--server",
-                &server.url(),
-                "--name",
-                "soak",
-                "--intra-op-threads",
-                "1",
-            ])
-            .env(
-                "RUST_LOG",
-                std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
-            )
-            .stdout(Stdio::null())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .unwrap(),
-    );
+    let mut worker = RefinerWorker::start(&server.url(), "soak");
     let (server_pid, worker_pid) = (server.pid(), worker.0.id());
 
     let soak = Arc::new(Soak {

@@ -5,12 +5,15 @@
 //                   [--size 256] [--chromium /usr/bin/chromium]
 //
 // In DIR: moving-0.png, moving-1.png, moving-2.png (the canvas at three times, the last from an
-// orbited camera, with exact f32 sets), moving-f16.png (the last time again, with the f16 sets a
-// user's page fetches), static-0.png and static-1.png (a clip of one frame repeated, uploaded
+// orbited camera, with sets from the compact stream at its finest bound, `?position_error=1e-5`),
+// moving-default.png (the last time again, with the stream at its default bound, as a user's page
+// fetches it), moving-exact.png (the same with exact f32 sets from the older C4GS transport,
+// `?precision=f32`), static-0.png and static-1.png (a clip of one frame repeated, uploaded
 // through the page's file input, at its second and last time), download.ply and download.splat
 // (the download buttons' files), page.png (the page showing a comparison) and result.json: for
 // each screenshot the render request of the view it shows (time, camera, size), the PSNR the
-// page's own "Compare with server" reported in each view mode, and the frames playing showed.
+// page's own "Compare with server" reported in each view mode, the frames playing showed, and
+// for each page where its sets came from (`frames`: kind, bytes received, sets loaded).
 
 import { chromium } from 'playwright-core';
 import { mkdir, readFile, writeFile } from 'node:fs/promises';
@@ -50,6 +53,78 @@ async function settled(page, index, clip) {
   const s = await viewerState(page);
   if (s.error) throw new Error(`the viewer reports: ${s.error}`);
   return s;
+}
+
+/**
+ * Where the page's sets came from, once all of them have arrived: `c4gViewer`'s `frames` (kind,
+ * bytes, requests, bound) and how many sets those bytes brought.
+ */
+async function frameSource(page) {
+  await page.waitForFunction(
+    () => {
+      const s = window.c4gViewer.state();
+      return s.error || s.loaded === s.times.length;
+    },
+    null,
+    { timeout: TIMEOUT_MS, polling: 50 },
+  );
+  const s = await viewerState(page);
+  if (s.error) throw new Error(`the viewer reports: ${s.error}`);
+  return { ...s.frames, sets: s.loaded, count: s.shown.count };
+}
+
+/**
+ * frames.js on its own, in the page, on `clip` viewed at 48 fps (29 times on the grid and the
+ * span's end after them): a far scrub gives up the running stream for one at the wanted time, the
+ * end comes by itself, every frame arrives; `close()` aborts the fetch; and a server that answers
+ * 404 for the stream gets C4GS decodes.
+ */
+async function sourceChecks(page, clip) {
+  const run = (fallback) =>
+    page.evaluate(
+      async ([id, fallback]) => {
+        const { FrameSource, frameTimes } = await import('/viewer/assets/frames.js');
+        const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
+        const view = { id, span: [0, 0.6], source: { fps: 48 } };
+        const { times, fps, grid } = frameTimes(view);
+        const source = new FrameSource(view, times, { fps, grid });
+        await source.want(0);
+        if (fallback) {
+          await source.want(2);
+          source.close();
+          return { kind: source.kind, loaded: source.loaded };
+        }
+        const far = grid - 4;
+        const skipped = !source.has(far - 1);
+        await source.want(far);
+        await source.want(times.length - 1);
+        while (source.loaded < times.length) await sleep(50);
+        const ordered = times.every((t, i) => Math.abs(source.get(i).t - t) < 1e-9);
+        const seek = { times: times.length, grid, skipped, ordered, requests: source.requests, bytes: source.bytes };
+        // Closing as soon as the first set is in aborts the rest.
+        const closing = new FrameSource(view, times, { fps, grid });
+        await closing.want(0);
+        closing.close();
+        const [loaded, bytes] = [closing.loaded, closing.bytes];
+        await sleep(1000);
+        seek.closed = {
+          aborted: closing.run?.controller.signal.aborted ?? null,
+          loaded,
+          later: closing.loaded,
+          bytes,
+          laterBytes: closing.bytes,
+        };
+        return seek;
+      },
+      [clip, fallback],
+    );
+  const seek = await run(false);
+  await page.route('**/stream', (route) =>
+    route.fulfill({ status: 404, contentType: 'application/json', body: '{"error": "no route", "kind": "not_found"}' }),
+  );
+  const fallback = await run(true);
+  await page.unroute('**/stream');
+  return { seek, fallback };
 }
 
 /** Moves the time slider to `index` with the keyboard, as a user would. */
@@ -128,8 +203,9 @@ async function main() {
     page.on('pageerror', (e) => console.error(`[page error] ${e.message}`));
     page.setDefaultTimeout(TIMEOUT_MS);
 
-    // Exact sets first (f32 on the wire): the images then differ by the renderers alone.
-    await page.goto(`${a.base}/viewer/${a.clip}?size=${a.size}&precision=f32`);
+    // The stream at its finest bound first: the images then differ by the renderers (and sets
+    // within 1e-5 of position, 4.9e-4 of the rest) alone.
+    await page.goto(`${a.base}/viewer/${a.clip}?size=${a.size}&position_error=1e-5`);
     let s = await settled(page, 0, a.clip);
     result.target = s.target;
     result.footprint = s.footprint;
@@ -162,18 +238,24 @@ async function main() {
     result.downloads = {};
     for (const format of ['ply', 'splat']) result.downloads[format] = await download(page, format, a.out);
     result.played = await play(page);
+    result.finest = { frames: await frameSource(page) };
+    Object.assign(result, await sourceChecks(page, a.clip));
 
-    // The page as a user opens it (f16 sets), at the last time.
-    await page.goto(`${a.base}/viewer/${a.clip}?size=${a.size}`);
-    await settled(page, 0, a.clip);
-    await scrub(page, last);
-    s = await settled(page, last, a.clip);
-    result.f16 = {
-      index: last,
-      t: s.times[last],
-      screenshot: await shoot(page, path.join(a.out, 'moving-f16.png')),
-      request: await page.evaluate(() => window.c4gViewer.request()),
-    };
+    // The last time with exact sets from the older transport (C4GS f32), then as a user opens the
+    // page (the stream at its default bound).
+    for (const [name, query] of [['exact', '&precision=f32'], ['default', '']]) {
+      await page.goto(`${a.base}/viewer/${a.clip}?size=${a.size}${query}`);
+      await settled(page, 0, a.clip);
+      await scrub(page, last);
+      s = await settled(page, last, a.clip);
+      result[name] = {
+        index: last,
+        t: s.times[last],
+        screenshot: await shoot(page, path.join(a.out, `moving-${name}.png`)),
+        request: await page.evaluate(() => window.c4gViewer.request()),
+        frames: await frameSource(page),
+      };
+    }
 
     // The static clip, through the page's upload: one frame four times (fps 10: 0 to 0.3 s).
     const frame = await readFile(a.staticFrame);

@@ -113,6 +113,22 @@ fn the_rest_stream_is_the_exact_sets_within_its_bound_in_a_fraction_of_the_bytes
 }
 
 #[test]
+fn a_rate_too_low_for_the_span_streams_one_set_at_the_start() {
+    if !ort_available() {
+        return;
+    }
+    let server = Server::start(&[]);
+    let id = upload_synthetic(&server);
+    for body in [json!({"fps": 5e-324}), json!({"step": 1e6, "start": 0.1})] {
+        let response = post(&server, &format!("/v1/clips/{id}/stream"), body.clone());
+        assert_eq!(response.status(), 200, "{body}");
+        let frames = c4gv::decode(&response.bytes().unwrap()).unwrap();
+        assert_eq!(frames.len(), 1, "{body}");
+        assert_eq!(frames[0].0, body["start"].as_f64().unwrap_or(0.0));
+    }
+}
+
+#[test]
 fn bad_stream_options_are_refused_with_what_to_change() {
     if !ort_available() {
         return;

@@ -13,12 +13,12 @@ use std::collections::BTreeSet;
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use c4g_e2e::{
-    ServerProcess, binary, frames_form, metric, multipart_bytes, ort_available, synthetic_clip,
-    workspace,
+    RefinerWorker, ServerProcess, frames_form, metric, multipart_bytes, ort_available,
+    synthetic_clip, workspace,
 };
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
@@ -321,30 +321,8 @@ fn decoding_settles(server: &ServerProcess, within: Duration) -> f64 {
 
 // ---- refinement ---------------------------------------------------------------------------------
 
-struct Worker(Child);
-
-impl Drop for Worker {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// A `c4g-refiner` worker on the tiny Wan-VACE fixture, pulling from `url`.
-fn worker(url: &str, name: &str) -> Worker {
-    Worker(
-        Command::new(binary("c4g-refiner"))
-            .current_dir(workspace())
-            .args(["--server", url, "--name", name, "--intra-op-threads", "1"])
-            .env(
-                "RUST_LOG",
-                std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
-            )
-            .stdout(Stdio::null())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .unwrap(),
-    )
+fn worker(url: &str, name: &str) -> RefinerWorker {
+    RefinerWorker::start(url, name)
 }
 
 fn submit(server: &ServerProcess, clip: &str, steps: u32) -> String {

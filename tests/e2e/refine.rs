@@ -5,43 +5,15 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
 use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
-use c4g_e2e::{Server, binary, ort_available, upload_synthetic, workspace};
+use c4g_e2e::{RefinerWorker, Server, binary, ort_available, upload_synthetic, workspace};
 use reqwest::blocking::Client;
 use serde_json::{Value, json};
 
-struct Worker(Child);
-
-impl Drop for Worker {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn worker(server: &Server, name: &str) -> Worker {
-    Worker(
-        Command::new(binary("c4g-refiner"))
-            .current_dir(workspace())
-            .args([
-                "--server",
-                &server.url(),
-                "--name",
-                name,
-                "--intra-op-threads",
-                "1",
-            ])
-            .env(
-                "RUST_LOG",
-                std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
-            )
-            .stdout(Stdio::null())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .unwrap(),
-    )
+fn worker(server: &Server, name: &str) -> RefinerWorker {
+    RefinerWorker::start(&server.url(), name)
 }
 
 fn job(client: &Client, server: &Server, id: &str) -> Value {

@@ -1,10 +1,12 @@
 //! The browser viewer (`/viewer`, `server/viewer/`) in a real browser: Debian's Chromium, headless
 //! with WebGL2 on SwiftShader, driven by playwright-core from `tests/browser/viewer.mjs` against
 //! the real server with the default model. The script scrubs a moving clip to three times (the
-//! last from an orbited camera), screenshots the canvas at each, presses "Compare with server"
-//! in each view mode, downloads the exports, plays, opens the page as a user does (f16 sets) and
-//! uploads a static clip through it; this side renders the same views on the server and holds
-//! the browser's images to them, and to each other across time.
+//! last from an orbited camera) with sets from the compact stream at its finest bound, screenshots
+//! the canvas at each, presses "Compare with server" in each view mode, downloads the exports,
+//! plays, checks frames.js's seeking, aborting and fallback on its own, opens the page with exact
+//! C4GS sets and as a user does (the stream at its default bound) and uploads a static clip
+//! through it; this side renders the same views on the server and holds the browser's images to
+//! them, and to each other across time, and checks that the pages' sets came from the stream.
 //!
 //! Needs `/usr/bin/chromium` (or `C4G_CHROMIUM`), `node` and `npm` (`npm ci` in `tests/browser`,
 //! from its lockfile, runs here when scripts/setup has not); skips without them, except in CI.
@@ -22,33 +24,49 @@ use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use serde_json::Value;
 
 /// The browser's canvas against the server's PNG of the same camera, time and size, with exact
-/// (f32) sets on the wire. Both draw one forward model (server/viewer/splats.js follows
+/// (C4GS f32) sets on the wire. Both draw one forward model (server/viewer/splats.js follows
 /// renderer/src/raster); what remains is f32 rounding in SwiftShader's shaders and blending
 /// against the CPU rasterizer's f64 projection, the transmittance stop that blending cannot make
 /// (at most 1e-4), and the 8-bit rounding of both images: no pixel was off by more than 2 levels.
-/// Measured on c4g-tiny at 256²: 71.8-76.0 dB over the three views. The bound leaves ~10 dB of
-/// margin and stays above what a real mismatch costs even on this smooth scene: shifting the
-/// server's image by half a pixel gives 54.4 dB, by one pixel 48.4.
-const SAME_VIEW_MIN_DB: f64 = 62.0;
+/// Measured on c4g-tiny at 256²: 71.8-76.0 dB over the three views (71.8 at the last time, the
+/// one checked now). The bound leaves ~10 dB of margin and stays above what a real mismatch
+/// costs even on this smooth scene: shifting the server's image by half a pixel gives 54.4 dB,
+/// by one pixel 48.4.
+const EXACT_VIEW_MIN_DB: f64 = 62.0;
 
-/// The same with the f16 sets the page fetches by default: rounding positions to 2⁻¹¹ of their
-/// value moves splats by up to a tenth of a pixel here and may reorder Gaussians of nearly equal
-/// depth. Measured: 55.6 dB at the clip's last time (the worst of its frames, 6 levels at most).
-const F16_VIEW_MIN_DB: f64 = 48.0;
+/// The same with the compact stream at its finest bound (`?position_error=1e-5`), the three
+/// views. Lower than with exact sets although positions are within 1e-5: C4GV's other grids hold
+/// opacity and colour within 4.9e-4 (an eighth of an 8-bit level), scales within 4.9e-4 relative,
+/// rotations within 4.9e-4 rad, and blending many such Gaussians moves pixels by a fraction of a
+/// level (still at most 2 levels). Measured: 63.0-63.4 dB. The bound leaves 5 dB of margin and
+/// stays above a half-pixel shift (54.4 dB).
+const SAME_VIEW_MIN_DB: f64 = 58.0;
 
-/// The page's own "Compare with server" (f32 sets), in each view mode. Depth goes through a
-/// colour ramp that magnifies the differences in the faint fringes of Gaussians. Measured: colour
-/// 76.0, depth 70.6, alpha 72.3 dB.
-const PAGE_MIN_DB: [(&str, f64); 3] = [("color", 62.0), ("depth", 56.0), ("alpha", 62.0)];
+/// The same with the stream at its default bound (1e-3, what a user's page fetches): positions
+/// 1e-3 off move splats by up to a tenth of a pixel here and may reorder Gaussians of nearly equal
+/// depth. Measured: 54.9 dB at the clip's last time (6 levels at most); f16 C4GS sets gave 55.6.
+const DEFAULT_VIEW_MIN_DB: f64 = 48.0;
+
+/// The page's own "Compare with server" (the stream at 1e-5), in each view mode. Depth goes
+/// through a colour ramp that magnifies the differences in the faint fringes of Gaussians.
+/// Measured: colour 63.4, depth 65.4, alpha 69.4 dB (with exact sets: 76.0, 70.6, 72.3; the
+/// stream's opacity and colour grids cost colour the most, as for SAME_VIEW_MIN_DB).
+const PAGE_MIN_DB: [(&str, f64); 3] = [("color", 58.0), ("depth", 56.0), ("alpha", 62.0)];
+
+/// Bytes a stream page received per set, at most, as a fraction of C4GS f32's 56 per Gaussian
+/// (headers, static records and index records included). Measured on the moving clip (512
+/// Gaussians, 7 sets): 4,524 bytes a set at 1e-3 (15.8 %), 5,983 at 1e-5 (20.9 %).
+const STREAM_BYTES_MAX: [(&str, f64); 2] = [("default", 0.25), ("finest", 0.33)];
 
 /// The moving clip at its second and last time (0.1 and 0.6 s), same camera: its scene moves, so
-/// this is far under the same-view bound. Measured: 35.4 dB.
+/// this is far under the same-view bound. Measured: 35.3 dB.
 const MOVING_MAX_DB: f64 = 39.0;
 
 /// A clip of one frame repeated, at its second and last time (0.1 and 0.3 s): the scene is still.
 /// c4g-tiny does not decode exactly the same set at every time of a still clip (its set at the
 /// first context time, 0 s, stands apart at 38 dB, which is why neither check uses 0 s); from the
-/// second time on its sets agree to within 45-53 dB. Measured: 45.0 dB (f16 sets).
+/// second time on its sets agree to within 45-53 dB. Measured: 44.9 dB (the stream at 1e-3; 45.0
+/// with f16 C4GS sets).
 const STATIC_MIN_DB: f64 = 42.0;
 
 /// Side of the viewer's canvas, pixels (small: SwiftShader and the server's renders share two
@@ -163,6 +181,69 @@ fn update_screenshots(out: &Path) {
     eprintln!("wrote {}", docs.display());
 }
 
+/// The pages' sets came from the compact stream (at the bound each asked for), in far fewer bytes
+/// than C4GS f32; the exact page's from C4GS; frames.js seeks, aborts and falls back.
+fn check_frame_sources(result: &Value) {
+    for (name, kind, bound) in [
+        ("finest", "stream", Some(1e-5)),
+        ("default", "stream", Some(1e-3)),
+        ("exact", "c4gs", None),
+    ] {
+        let frames = &result[name]["frames"];
+        let (bytes, sets, count) = (
+            frames["bytes"].as_f64().unwrap(),
+            frames["sets"].as_f64().unwrap(),
+            frames["count"].as_f64().unwrap(),
+        );
+        let per_set = bytes / sets;
+        let c4gs_f32 = 56.0 * count;
+        eprintln!(
+            "{name} page: {kind} sets, {per_set:.0} bytes a set ({:.1} % of C4GS f32), {frames}",
+            100.0 * per_set / c4gs_f32
+        );
+        assert_eq!(frames["kind"], kind, "{name}: {frames}");
+        assert_eq!(sets, 7.0, "{name}: {frames}");
+        match bound {
+            Some(error) => {
+                assert_eq!(frames["positionError"].as_f64(), Some(error), "{frames}");
+                assert!(frames["requests"].as_u64().unwrap() >= 1, "{frames}");
+                let max = STREAM_BYTES_MAX.iter().find(|(n, _)| *n == name).unwrap().1;
+                assert!(
+                    per_set < max * c4gs_f32,
+                    "{name}: {per_set:.0} bytes a set, over {max} of C4GS f32's {c4gs_f32}"
+                );
+            }
+            None => {
+                assert_eq!(frames["precision"], "f32");
+                assert!(per_set >= c4gs_f32, "{frames}");
+            }
+        }
+    }
+    // frames.js alone, at 48 fps: a scrub far ahead started a stream there (the frames between
+    // had not come yet), the span's end off the grid came in a stream of its own, and every set
+    // came at its time.
+    let seek = &result["seek"];
+    eprintln!("seeking: {seek}");
+    assert_eq!(
+        (seek["times"].as_u64(), seek["grid"].as_u64()),
+        (Some(30), Some(29))
+    );
+    assert_eq!(seek["ordered"], true, "{seek}");
+    assert_eq!(seek["skipped"], true, "{seek}");
+    // At least the first stream and the one the scrub started; the off-grid end comes in a
+    // third unless a stream already brought it (which depends on how fast the sets arrive).
+    assert!(seek["requests"].as_u64().unwrap() >= 2, "{seek}");
+    // Closed after its first set: the stream was aborted and nothing more came.
+    let closed = &seek["closed"];
+    assert_eq!(closed["aborted"], true, "{closed}");
+    assert_eq!(closed["loaded"], closed["later"], "{closed}");
+    assert_eq!(closed["bytes"], closed["laterBytes"], "{closed}");
+    // A server that answers 404 for the stream (an older one) gets C4GS decodes.
+    let fallback = &result["fallback"];
+    assert_eq!(fallback["kind"], "c4gs", "{fallback}");
+    assert!(fallback["loaded"].as_u64().unwrap() >= 3, "{fallback}");
+}
+
 fn run_script(driver: &Path, chromium: &Path, server: &Server, clip: &str, out: &Path) -> Value {
     let (frames, _) = synthetic_clip();
     let status = Command::new("node")
@@ -226,9 +307,13 @@ fn the_viewer_draws_what_the_server_renders_and_follows_the_clip_s_time() {
         .iter()
         .zip(&shots)
         .map(|(v, shot)| (v, shot, SAME_VIEW_MIN_DB));
-    let f16_shot = read(&result["f16"]["screenshot"]);
-    let f16 = std::iter::once((&result["f16"], &f16_shot, F16_VIEW_MIN_DB));
-    for (view, shot, bound) in views.chain(f16) {
+    let last = [
+        ("exact", EXACT_VIEW_MIN_DB),
+        ("default", DEFAULT_VIEW_MIN_DB),
+    ]
+    .map(|(name, bound)| (&result[name], read(&result[name]["screenshot"]), bound));
+    let last = last.iter().map(|(view, shot, bound)| (*view, shot, *bound));
+    for (view, shot, bound) in views.chain(last) {
         let request = &view["request"];
         assert_eq!(request["t"], view["t"]);
         assert_eq!(request["width"], SIZE);
@@ -243,6 +328,8 @@ fn the_viewer_draws_what_the_server_renders_and_follows_the_clip_s_time() {
             view["screenshot"]
         );
     }
+    check_frame_sources(&result);
+
     // The first two are the first context camera; the third was orbited.
     let pose = |k: usize| -> Vec<f64> {
         let m = moving[k]["request"]["camera"]["world_to_camera"].as_array();

@@ -550,3 +550,33 @@ pub fn multipart_bytes(frames: &[PathBuf], times: &[f64], boundary: &str) -> Vec
     body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
     body
 }
+
+/// A `c4g-refiner` worker on the tiny Wan-VACE fixture, pulling jobs from the server at `url`
+/// (the process is in `.0`); killed when dropped.
+pub struct RefinerWorker(pub Child);
+
+impl RefinerWorker {
+    /// Starts one named `name`, on one intra-op thread, logging at `RUST_LOG` (default warn).
+    pub fn start(url: &str, name: &str) -> Self {
+        Self(
+            Command::new(binary("c4g-refiner"))
+                .current_dir(workspace())
+                .args(["--server", url, "--name", name, "--intra-op-threads", "1"])
+                .env(
+                    "RUST_LOG",
+                    std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
+                )
+                .stdout(Stdio::null())
+                .stderr(Stdio::inherit())
+                .spawn()
+                .unwrap(),
+        )
+    }
+}
+
+impl Drop for RefinerWorker {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
