@@ -15,22 +15,11 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use c4g_e2e::{Server, binary, ort_available, upload_synthetic, workspace};
+use c4g_e2e::{Server, binary, expect_error, ort_available, upload_synthetic, workspace};
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
 use reqwest::blocking::{Client, Response};
 use serde_json::{Value, json};
-
-/// Asserts the status, the kind and a fragment of the message of an error answer.
-fn expect_error(response: Response, status: u16, kind: &str, fragment: &str) {
-    let got = response.status().as_u16();
-    let text = response.text().unwrap();
-    let body: Value = serde_json::from_str(&text).unwrap_or_else(|_| panic!("not JSON: {text}"));
-    assert_eq!(got, status, "{text}");
-    assert_eq!(body["kind"], kind, "{text}");
-    let message = body["error"].as_str().unwrap();
-    assert!(message.contains(fragment), "{message:?} lacks {fragment:?}");
-}
 
 /// The server still answers and still decodes the good clip.
 fn still_serves(server: &mut Server, client: &Client, good: &str) {
@@ -89,27 +78,12 @@ fn png(width: u32, height: u32) -> Vec<u8> {
     bytes
 }
 
-fn crc32(bytes: &[u8]) -> u32 {
-    let mut crc = 0xffff_ffffu32;
-    for &b in bytes {
-        crc ^= u32::from(b);
-        for _ in 0..8 {
-            crc = if crc & 1 != 0 {
-                (crc >> 1) ^ 0xedb8_8320
-            } else {
-                crc >> 1
-            };
-        }
-    }
-    !crc
-}
-
 /// A real PNG whose header is rewritten to say `width` x `height`.
 fn png_claiming(width: u32, height: u32) -> Vec<u8> {
     let mut bytes = png(16, 16);
     bytes[16..20].copy_from_slice(&width.to_be_bytes());
     bytes[20..24].copy_from_slice(&height.to_be_bytes());
-    let crc = crc32(&bytes[12..29]);
+    let crc = crc32fast::hash(&bytes[12..29]);
     bytes[29..33].copy_from_slice(&crc.to_be_bytes());
     bytes
 }

@@ -580,3 +580,20 @@ impl Drop for RefinerWorker {
         let _ = self.0.wait();
     }
 }
+
+/// Asserts the status, the kind and a fragment of the message of an error answer.
+pub fn expect_error(
+    response: reqwest::blocking::Response,
+    status: u16,
+    kind: &str,
+    fragment: &str,
+) {
+    let got = response.status().as_u16();
+    let text = response.text().unwrap();
+    let body: serde_json::Value =
+        serde_json::from_str(&text).unwrap_or_else(|_| panic!("not JSON: {text}"));
+    assert_eq!(got, status, "{text}");
+    assert_eq!(body["kind"], kind, "{text}");
+    let message = body["error"].as_str().unwrap();
+    assert!(message.contains(fragment), "{message:?} lacks {fragment:?}");
+}
