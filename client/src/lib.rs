@@ -18,6 +18,7 @@
 //! | [`keyframes`] | [`Keyframes`]: exact sets at keyframes, interpolated between them, for decodes, streams and trajectories |
 //! | [`quality`] | [`Approximation`]: a [`Quality`] preset, keyframes and [`Prune`], for decodes, streams and renders |
 //! | [`wire`] | parsers of the packed Gaussian payloads: the `C4GS` binary format and the proto's arrays |
+//! | [`export`] | [`Client::export`]: a time range as one file other viewers open (a zip of `.ply` or `.spz` files, a fitted `.splatv`) |
 //! | [`render`] | [`RenderRequest`] and [`Client::render`]: images, depth, alpha and trajectory videos |
 //! | [`stream`] | [`Client::stream`]: Gaussian sets over a time range, over gRPC |
 //! | [`jobs`] | [`RefineRequest`], [`Client::refine`] and [`Job`]: refinement jobs, followed as server-sent events |
@@ -29,6 +30,7 @@
 pub mod client;
 pub mod clips;
 pub mod error;
+pub mod export;
 pub mod gaussians;
 pub mod jobs;
 pub mod keyframes;
@@ -44,6 +46,7 @@ pub use c4g_renderer::GaussianSet;
 pub use client::Client;
 pub use clips::{Clip, ClipSource};
 pub use error::Error;
+pub use export::{Export, ExportFormat, ExportOptions};
 pub use gaussians::{GaussianFormat, GaussianFrame, Precision};
 pub use jobs::{Job, JobEvents, JobProgress, RefineRequest, Sampler, job_event_stream};
 pub use keyframes::Keyframes;

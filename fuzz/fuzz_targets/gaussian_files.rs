@@ -1,15 +1,18 @@
-//! The readers of Gaussian files and payloads: 3DGS `.ply`, `.splat`, the `C4GS` codec and the
-//! compact 4D stream `C4GV`. Input: `[format]bytes`.
+//! The readers of Gaussian files and payloads: 3DGS `.ply`, `.splat`, the `C4GS` codec, the
+//! compact 4D stream `C4GV`, and the 4D exports' `.spz`, frames zip and `.splatv`. Input:
+//! `[format]bytes`, the format byte taken modulo 8.
 //!
 //! `.ply` and `.splat` files come from other tools, so their readers return what a file holds
 //! (activated), which need not meet the canonical invariants (3DGS colours from negative SH
 //! coefficients are below 0, a huge log-scale is an infinite scale). What is held of them: a set
 //! that decodes renders with the CPU rasterizer to finite pixels, and the writer's bytes read
 //! back (`.splat` leaves out what it cannot write). `C4GS` is our own: its f32 round trip is
-//! exact, bit for bit.
+//! exact, bit for bit. A `.spz` that decodes writes again (its values are inside what SPZ holds)
+//! and renders; a frames zip's sets render; a `.splatv` that decodes evaluates at any time
+//! without a panic and writes back to bytes that decode.
 #![no_main]
 
-use c4g_renderer::formats::{c4gs, c4gv, ply, splat};
+use c4g_renderer::formats::{c4gs, c4gv, frames_zip, ply, splat, splatv, spz};
 use c4g_renderer::{
     Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, Rasterizer, RenderOptions,
 };
@@ -38,7 +41,7 @@ libfuzzer_sys::fuzz_target!(|input: &[u8]| {
     let Some((&format, bytes)) = input.split_first() else {
         return;
     };
-    match format % 4 {
+    match format % 8 {
         0 => {
             if let Ok(set) = ply::decode(bytes) {
                 renders_finite(&set);
@@ -83,6 +86,30 @@ libfuzzer_sys::fuzz_target!(|input: &[u8]| {
                     renders_finite(set);
                     assert!(time.is_finite());
                 }
+            }
+        }
+        4 => {
+            if let Ok(set) = spz::decode(bytes) {
+                renders_finite(&set);
+                let again = spz::decode(&spz::encode(&set).expect("a decoded .spz writes"))
+                    .expect("spz round trip");
+                assert_eq!(again.len(), set.len());
+            }
+        }
+        5 => {
+            if let Ok((_, frames)) = frames_zip::decode(bytes, 1 << 20) {
+                for (time, set) in &frames {
+                    assert!(time.is_finite());
+                    renders_finite(set);
+                }
+            }
+        }
+        6 => {
+            if let Ok(model) = splatv::decode(bytes) {
+                for t in [-1.0, 0.0, 0.5, 1e9] {
+                    assert_eq!(model.at(t).len(), model.len());
+                }
+                splatv::decode(&model.encode()).expect("splatv round trip");
             }
         }
         _ => {

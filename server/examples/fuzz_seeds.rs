@@ -8,7 +8,7 @@ use std::io::{Cursor, Write};
 use std::path::Path;
 
 use c4g_proto::v1 as pb;
-use c4g_renderer::formats::{c4gs, c4gv, ply, splat};
+use c4g_renderer::formats::{c4gs, c4gv, frames_zip, ply, splat, splatv, spz};
 use c4g_renderer::{Gaussian, GaussianSet};
 use c4g_server::fuzzing::CLIP_MARK;
 use glam::{Quat, Vec3};
@@ -132,6 +132,29 @@ fn main() {
                     },
                 )
                 .expect("c4gv"),
+            ),
+            tagged(4, &spz::encode(&one).expect("spz")),
+            tagged(
+                5,
+                &frames_zip::encode(
+                    &[(0.0, one.clone()), (0.5, one.clone())],
+                    frames_zip::FrameFormat::Spz,
+                )
+                .expect("frames zip"),
+            ),
+            tagged(
+                5,
+                &frames_zip::encode(&[(0.25, one.clone())], frames_zip::FrameFormat::Ply)
+                    .expect("frames zip"),
+            ),
+            tagged(
+                6,
+                &splatv::fit(
+                    &[(0.0, one.clone()), (0.5, one.clone()), (1.0, one.clone())],
+                    &splatv::Camera::first_context(64, 64),
+                )
+                .expect("splatv")
+                .encode(),
             ),
         ],
     );

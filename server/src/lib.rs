@@ -14,6 +14,7 @@
 //! | `quality` | the speed/accuracy presets (exact, balanced, fast) and pruning as clients ask for it |
 //! | `pruning` | which Gaussians a pruned request keeps: each clip's scene analysis, cached |
 //! | `streaming` | streams of sets over a time range, planned once, decoded ahead of the reader |
+//! | `exports` | 4D exports: a time range as a zip of `.ply` or `.spz` files, or a fitted `.splatv` |
 //! | `renderer` | the rasterizer choice |
 //! | `image_formats` | what renders answer with: PNG, raw depth and alpha, MP4 |
 //! | `service_error` | [`ServiceError`]: what went wrong, in domain words, and its kinds |
@@ -39,6 +40,7 @@ pub mod body_deadline;
 mod camera;
 pub mod config;
 mod error;
+mod exports;
 pub mod faults;
 #[cfg(feature = "fuzzing")]
 pub mod fuzzing;

@@ -43,6 +43,16 @@ pub enum Spacing {
 pub const MAX_SPACING: f64 = 1e6;
 
 impl Spacing {
+    /// The spacing a request states as `step` or `fps` (neither: the source's rate).
+    pub fn stated(step: Option<f64>, fps: Option<f64>) -> Result<Self, ServiceError> {
+        match (step, fps) {
+            (Some(step), None) => Ok(Self::Step(step)),
+            (None, Some(fps)) => Ok(Self::Fps(fps)),
+            (None, None) => Ok(Self::Source),
+            (Some(_), Some(_)) => Err(ServiceError::invalid("give \"step\" or \"fps\", not both")),
+        }
+    }
+
     fn step(self) -> Option<f64> {
         match self {
             Self::Step(step) => Some(step),

@@ -42,6 +42,7 @@ const ui = {
   overlay: $('overlay'),
   ply: $('download-ply'),
   splat: $('download-splat'),
+  exports: ['ply_zip', 'spz_zip', 'splatv'].map((format) => [format, $(`download-${format}`)]),
   status: $('status'),
 };
 
@@ -158,7 +159,8 @@ async function openClip(id, { url = null } = {}) {
 }
 
 function setControls(enabled) {
-  for (const control of [ui.play, ui.time, ui.compare, ui.ply, ui.splat]) control.disabled = !enabled;
+  const exports = ui.exports.map(([, button]) => button);
+  for (const control of [ui.play, ui.time, ui.compare, ui.ply, ui.splat, ...exports]) control.disabled = !enabled;
   ui.play.textContent = state.playing ? 'Pause' : 'Play';
 }
 
@@ -286,6 +288,27 @@ async function download(format) {
   setTimeout(() => URL.revokeObjectURL(link.href), 60_000);
 }
 
+/** The whole clip at the viewer's frame rate as one 4D file (POST /v1/clips/{id}/export). */
+async function downloadExport(format, button) {
+  const id = state.clip.id;
+  const { fps } = frameTimes(state.clip);
+  button.disabled = true;
+  showStatus(`exporting the clip as ${format}…`);
+  try {
+    const response = await postJson(`/v1/clips/${encodeURIComponent(id)}/export`, { format, fps });
+    const sets = response.headers.get('X-C4G-Sets');
+    const fit = response.headers.get('X-C4G-Fit-Position-Error');
+    const link = document.createElement('a');
+    link.href = URL.createObjectURL(await response.blob());
+    link.download = `${id.slice(0, 12)}.${format.replace('_', '.')}`;
+    link.click();
+    setTimeout(() => URL.revokeObjectURL(link.href), 60_000);
+    showStatus(`exported ${sets} frames as ${link.download}` + (fit ? ` (fit: ${fit} scene units)` : ''));
+  } finally {
+    button.disabled = false;
+  }
+}
+
 async function uploadFiles(files) {
   ui.progress.hidden = false;
   ui.progress.removeAttribute('value');
@@ -340,6 +363,9 @@ function wire() {
   ui.overlay.addEventListener('change', () => ui.stage.classList.toggle('overlay', ui.overlay.checked));
   ui.ply.addEventListener('click', () => download('ply').catch(fail));
   ui.splat.addEventListener('click', () => download('splat').catch(fail));
+  for (const [format, button] of ui.exports) {
+    button.addEventListener('click', () => downloadExport(format, button).catch(fail));
+  }
   window.addEventListener('popstate', () => {
     const id = clipFromPath();
     if (id) openClip(id).catch(fail);

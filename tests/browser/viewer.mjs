@@ -10,7 +10,8 @@
 // fetches it), moving-exact.png (the same with exact f32 sets from the older C4GS transport,
 // `?precision=f32`), static-0.png and static-1.png (a clip of one frame repeated, uploaded
 // through the page's file input, at its second and last time), download.ply and download.splat
-// (the download buttons' files), page.png (the page showing a comparison) and result.json: for
+// (the download buttons' files; download.ply_zip, download.spz_zip and download.splatv the
+// whole clip's), page.png (the page showing a comparison) and result.json: for
 // each screenshot the render request of the view it shows (time, camera, size), the PSNR the
 // page's own "Compare with server" reported in each view mode, the frames playing showed, and
 // for each page where its sets came from (`frames`: kind, bytes received, sets loaded).
@@ -236,7 +237,9 @@ async function main() {
     const clip = { x: 0, y: 0, width: 800, height: Math.ceil(bottom) + 8 };
     await page.screenshot({ path: path.join(a.out, 'page.png'), clip });
     result.downloads = {};
-    for (const format of ['ply', 'splat']) result.downloads[format] = await download(page, format, a.out);
+    for (const format of ['ply', 'splat', 'ply_zip', 'spz_zip', 'splatv']) {
+      result.downloads[format] = await download(page, format, a.out);
+    }
     result.played = await play(page);
     result.finest = { frames: await frameSource(page) };
     Object.assign(result, await sourceChecks(page, a.clip));

@@ -6,7 +6,7 @@ use std::path::Path;
 use std::process::{Command, Output};
 
 use c4g_e2e::{Server, binary, ort_available, shared_data, synthetic_clip};
-use c4g_renderer::formats::ply;
+use c4g_renderer::formats::{frames_zip, ply};
 use reqwest::blocking::Client;
 use serde_json::{Value, json};
 
@@ -88,6 +88,38 @@ fn the_cli_uploads_decodes_exports_renders_and_streams() {
     assert_eq!(set.len(), 512);
     let x = rest["frames"][0]["means"][0][0].as_f64().unwrap();
     assert!((f64::from(set.positions()[0][0]) - x).abs() < 1e-6);
+    // A range as a zip of PLYs: the frames the export endpoint makes (tests/e2e/exports.rs reads
+    // every format back), with the set at 0.3 s among them.
+    let zipped = work.path().join("clip.ply.zip");
+    let out = ok(c4g(
+        &server,
+        &[
+            "--json",
+            "export",
+            &id,
+            "--start",
+            "0.1",
+            "--end",
+            "0.3",
+            "--step",
+            "0.1",
+            "-o",
+            path(&zipped),
+        ],
+    ));
+    let line: Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(line["format"], "ply_zip", "{line}");
+    assert_eq!(line["sets"], 3, "{line}");
+    let (_, frames) = frames_zip::decode(&std::fs::read(&zipped).unwrap(), 1 << 24).unwrap();
+    assert_eq!(frames.len(), 3);
+    // Decoded in one batch of three rather than alone: equal up to the batch's f32 rounding.
+    assert_eq!(frames[2].0, 0.3);
+    for (a, b) in frames[2].1.positions().iter().zip(set.positions()) {
+        assert!((a[0] - b[0]).abs() < 1e-4, "{a:?} {b:?}");
+    }
+    let refused = c4g(&server, &["export", &id, "--t", "0.3", "-o", "x.splatv"]);
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("time range"));
 
     // Render writes the PNG the server renders.
     let image = work.path().join("view.png");

@@ -21,7 +21,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use c4g_e2e::{Server, frames_form, ort_available, synthetic_clip, upload_synthetic, workspace};
+use c4g_e2e::{Server, frames_form, ort_available, synthetic_clip, upload_synthetic, venv_python};
 use reqwest::blocking::Client;
 use serde_json::{Value, json};
 
@@ -56,8 +56,8 @@ STATED_IN_WORDS = [
     (r"POST /v1/clips/\{id\}/render", 400, r"frame count is the number of cameras"),
     (r"POST /v1/clips/\{id\}/render", 413, r"pixels in all"),
     (r"POST /v1/clips/\{id\}/(gaussians|render)", 400, r"make \d+ keyframes"),
-    (r"POST /v1/clips/\{id\}/stream", 400, r"outside the clip's context span|is after end|make \d+ keyframes"),
-    (r"POST /v1/clips/\{id\}/stream", 413, r"sets in one stream"),
+    (r"POST /v1/clips/\{id\}/(stream|export)", 400, r"outside the clip's context span|is after end|make \d+ keyframes"),
+    (r"POST /v1/clips/\{id\}/(stream|export)", 413, r"sets in one stream|C4G_MAX_EXPORT_MIB"),
     (r"POST /v1/clips/\{id\}/refine", 400, r"a divisor of that|shape of text_embedding"),
     (r"GET /v1/jobs/\{id\}/result", 400, r"its result exists once it is done"),
     (r"POST /v1/clips", 415, r"."),
@@ -97,10 +97,7 @@ def refusals_are_stated(ctx, response, case):
 
 /// The Python that has schemathesis, or why there is none.
 fn python() -> Result<PathBuf, String> {
-    let python = std::env::var_os("PYTHON")
-        .filter(|p| !p.is_empty())
-        .map(PathBuf::from)
-        .unwrap_or_else(|| workspace().join(".venv/bin/python"));
+    let python = venv_python();
     let found = Command::new(&python)
         .args([
             "-c",

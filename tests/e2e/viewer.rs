@@ -18,7 +18,9 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use c4g_e2e::{Server, ort_available, synthetic_clip, upload_synthetic, workspace};
+use c4g_e2e::{
+    Server, missing, node_packages, ort_available, synthetic_clip, upload_synthetic, workspace,
+};
 use c4g_renderer::metrics::psnr;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use serde_json::Value;
@@ -73,20 +75,6 @@ const STATIC_MIN_DB: f64 = 42.0;
 /// cores with everything else here).
 const SIZE: u32 = 256;
 
-fn in_ci() -> bool {
-    std::env::var_os("CI").is_some()
-}
-
-/// Skips (outside CI) or fails (in CI) for a missing tool.
-fn missing(what: &str) -> Option<PathBuf> {
-    assert!(
-        !in_ci(),
-        "in CI {what} (scripts/setup installs it, or set C4G_CHROMIUM)"
-    );
-    eprintln!("skipped: {what}");
-    None
-}
-
 fn chromium() -> Option<PathBuf> {
     let path = std::env::var_os("C4G_CHROMIUM")
         .map(PathBuf::from)
@@ -95,38 +83,10 @@ fn chromium() -> Option<PathBuf> {
         Some(path)
     } else {
         missing(&format!(
-            "Chromium must be at {} (apt-get install chromium)",
+            "Chromium must be at {} (apt-get install chromium, or set C4G_CHROMIUM)",
             path.display()
         ))
     }
-}
-
-fn runs(program: &str) -> bool {
-    Command::new(program)
-        .arg("--version")
-        .output()
-        .is_ok_and(|o| o.status.success())
-}
-
-/// `tests/browser` with playwright-core installed from its lockfile (`npm ci` when missing).
-fn browser_driver() -> Option<PathBuf> {
-    let dir = workspace().join("tests/browser");
-    if !runs("node") || !runs("npm") {
-        return missing("node and npm must be installed (apt-get install nodejs npm)");
-    }
-    if !dir
-        .join("node_modules/playwright-core/package.json")
-        .is_file()
-    {
-        let status = Command::new("npm")
-            .args(["ci", "--no-audit", "--no-fund"])
-            .current_dir(&dir)
-            .status();
-        if !status.is_ok_and(|s| s.success()) {
-            return missing("`npm ci` in tests/browser must install playwright-core");
-        }
-    }
-    Some(dir)
 }
 
 /// An RGB image as floats in 0..1, with its size.
@@ -278,7 +238,7 @@ fn the_viewer_draws_what_the_server_renders_and_follows_the_clip_s_time() {
         return;
     }
     let Some(chromium) = chromium() else { return };
-    let Some(driver) = browser_driver() else {
+    let Some(driver) = node_packages("playwright-core") else {
         return;
     };
     let server = Server::start(&[]);
@@ -364,6 +324,25 @@ fn the_viewer_draws_what_the_server_renders_and_follows_the_clip_s_time() {
             .unwrap()
             .ends_with(".splat")
     );
+    // The whole clip's 4D files, named as the page names them (tests/e2e/exports.rs reads their
+    // contents back with independent readers).
+    for (format, name, magic) in [
+        ("ply_zip", ".ply.zip", &b"PK\x03\x04"[..]),
+        ("spz_zip", ".spz.zip", b"PK\x03\x04"),
+        ("splatv", ".splatv", &0x674b_u32.to_le_bytes()),
+    ] {
+        let download = &result["downloads"][format];
+        assert!(
+            download["name"].as_str().unwrap().ends_with(name),
+            "{download}"
+        );
+        let bytes = read(&download["file"]);
+        assert!(
+            bytes.starts_with(magic),
+            "{format}: {:?}",
+            &bytes[..8.min(bytes.len())]
+        );
+    }
 
     // Playing steps through consecutive frames (wrapping at the end).
     let played: Vec<u64> = result["played"]

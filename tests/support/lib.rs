@@ -597,3 +597,54 @@ pub fn expect_error(
     let message = body["error"].as_str().unwrap();
     assert!(message.contains(fragment), "{message:?} lacks {fragment:?}");
 }
+
+/// True under CI (`CI` set), where a missing tool fails a test instead of skipping it.
+pub fn in_ci() -> bool {
+    std::env::var_os("CI").is_some()
+}
+
+/// Skips (outside CI, saying so) or fails (in CI) for a missing tool.
+pub fn missing<T>(what: &str) -> Option<T> {
+    assert!(!in_ci(), "in CI {what} (scripts/setup installs it)");
+    eprintln!("skipped: {what}");
+    None
+}
+
+fn runs(program: &str) -> bool {
+    Command::new(program)
+        .arg("--version")
+        .output()
+        .is_ok_and(|o| o.status.success())
+}
+
+/// `tests/browser` with its npm packages (playwright-core, @adobe/spz) installed from its
+/// lockfile: `npm ci` runs there when `package` is missing.
+pub fn node_packages(package: &str) -> Option<PathBuf> {
+    let dir = workspace().join("tests/browser");
+    if !runs("node") || !runs("npm") {
+        return missing("node and npm must be installed (apt-get install nodejs npm)");
+    }
+    if !dir
+        .join("node_modules")
+        .join(package)
+        .join("package.json")
+        .is_file()
+    {
+        let status = Command::new("npm")
+            .args(["ci", "--no-audit", "--no-fund"])
+            .current_dir(&dir)
+            .status();
+        if !status.is_ok_and(|s| s.success()) {
+            return missing(&format!("`npm ci` in tests/browser must install {package}"));
+        }
+    }
+    Some(dir)
+}
+
+/// The Python with the repository's packages: `PYTHON` when set, else `.venv/bin/python`.
+pub fn venv_python() -> PathBuf {
+    std::env::var_os("PYTHON")
+        .filter(|p| !p.is_empty())
+        .map(PathBuf::from)
+        .unwrap_or_else(|| workspace().join(".venv/bin/python"))
+}

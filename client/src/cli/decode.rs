@@ -1,4 +1,4 @@
-//! `c4g decode` and `c4g export`: the Gaussians at given times, summarised or written out.
+//! `c4g decode`: the Gaussians at given times, summarised or written out.
 
 use std::io::IsTerminal as _;
 use std::path::{Path, PathBuf};
@@ -131,18 +131,6 @@ pub struct DecodeArgs {
     approximation: ApproximationArgs,
 }
 
-#[derive(Debug, clap::Args)]
-pub struct ExportArgs {
-    /// The clip id.
-    clip: String,
-    /// The time in seconds, inside the clip's context span.
-    #[arg(long = "t", value_name = "T", allow_negative_numbers = true)]
-    time: f64,
-    /// The file to write: OUT.ply or OUT.splat (the extension picks the format).
-    #[arg(short, long)]
-    output: PathBuf,
-}
-
 pub async fn run(cx: &Context, args: DecodeArgs) -> anyhow::Result<()> {
     let explicit = args.format.map(GaussianFormat::from);
     let approximation = args.approximation.approximation();
@@ -185,26 +173,7 @@ pub async fn run(cx: &Context, args: DecodeArgs) -> anyhow::Result<()> {
     }
 }
 
-pub async fn export(cx: &Context, args: ExportArgs) -> anyhow::Result<()> {
-    let format = match GaussianFormat::from_extension(&args.output) {
-        Some(format @ (GaussianFormat::Ply | GaussianFormat::Splat)) => format,
-        _ => bail!(
-            "cannot tell the format of {} from its extension: use .ply or .splat",
-            args.output.display()
-        ),
-    };
-    fetch_to_file(
-        cx,
-        &args.clip,
-        &[args.time],
-        format,
-        &args.output,
-        &Approximation::default(),
-    )
-    .await
-}
-
-async fn fetch_to_file(
+pub(super) async fn fetch_to_file(
     cx: &Context,
     clip: &str,
     times: &[f64],

@@ -3,6 +3,7 @@
 
 mod decode;
 mod delete;
+mod export;
 mod info;
 mod jobs;
 mod refine;
@@ -54,8 +55,9 @@ enum Command {
     Delete(delete::Args),
     /// Decode the Gaussians at one or more times: a summary, or the server's bytes.
     Decode(decode::DecodeArgs),
-    /// Write the Gaussians at one time to a .ply or .splat file.
-    Export(decode::ExportArgs),
+    /// Write the Gaussians at one time to a .ply or .splat file, or a time range to one 4D file
+    /// other viewers open (.ply.zip, .spz.zip, .splatv).
+    Export(export::Args),
     /// Render an image, or a video along a camera trajectory.
     Render(render::Args),
     /// Stream Gaussian sets over a time range (gRPC), to .ply files or one line per set.
@@ -90,7 +92,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Clips => info::clips(&cx).await,
         Command::Delete(args) => delete::run(&cx, args).await,
         Command::Decode(args) => decode::run(&cx, args).await,
-        Command::Export(args) => decode::export(&cx, args).await,
+        Command::Export(args) => export::run(&cx, args).await,
         Command::Render(args) => render::run(&cx, args).await,
         Command::Stream(args) => stream::run(&cx, args).await,
         Command::Refine(args) => refine::run(&cx, args).await,

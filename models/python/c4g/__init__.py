@@ -20,4 +20,8 @@ Rendering and images (the references the renderer crate is held to, and training
 - `raster_scenes`: the rasterizer fixture scenes.
 - `render_torch`: the same forward model, differentiable, in PyTorch.
 - `metrics_reference`: PSNR and SSIM in float64.
+
+The service's 4D exports, read back by readers that are not the service's (tests/e2e/exports.rs):
+- `frames_zip`: a `.ply.zip` with `zipfile` and `plyfile`.
+- `splatv`: a `.splatv`, written from the format's specification (splaTV's viewer).
 """

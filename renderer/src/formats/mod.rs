@@ -3,7 +3,14 @@
 //! - [`ply`]: the 3D Gaussian splatting `.ply` (what trainers and most viewers exchange), read in
 //!   any of its variations, written in the common binary layout, optionally with feature columns;
 //! - [`splat`]: antimatter15's compact `.splat` (32 bytes a Gaussian), for web viewers;
+//! - [`splatv`]: antimatter15's `.splatv` for the splaTV player: a time range of sets as one file,
+//!   each Gaussian fitted with a motion model (cubic position, linear rotation, a temporal
+//!   opacity bump) with the fit's measured error;
+//! - [`spz`]: Niantic's SPZ (version 4): quantised to about 20 bytes a Gaussian, then zstd, for
+//!   the viewers and tools built on its reference library;
 //! - [`series`]: a time series of Gaussian sets: a directory of `.ply` files and a JSON index;
+//! - [`frames_zip`]: a time series as one zip of per-time `.ply` or `.spz` files (what players
+//!   of splat sequences open), the times in the archive's comment;
 //! - [`c4gs`]: the service's packed `C4GS` frames (`f32` or `f16` columns), and the column
 //!   packing the gRPC messages share with it;
 //! - [`c4gv`]: `C4GV`, a compact stream of one clip's sets over a time range: quantised within
@@ -15,9 +22,12 @@
 
 pub mod c4gs;
 pub mod c4gv;
+pub mod frames_zip;
 pub mod ply;
 pub mod series;
 pub mod splat;
+pub mod splatv;
+pub mod spz;
 
 use std::path::Path;
 

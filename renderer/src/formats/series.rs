@@ -115,7 +115,7 @@ pub fn write(dir: &Path, frames: &[(f64, &GaussianSet)]) -> Result<(), RendererE
     write_file(&dir.join(INDEX), &json)
 }
 
-fn check_times(times: impl Iterator<Item = f64>) -> Result<(), RendererError> {
+pub(super) fn check_times(times: impl Iterator<Item = f64>) -> Result<(), RendererError> {
     let mut last = f64::NEG_INFINITY;
     for (k, t) in times.enumerate() {
         if !t.is_finite() || t <= last {

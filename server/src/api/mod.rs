@@ -2,6 +2,7 @@
 
 mod clips;
 mod docs;
+mod export;
 mod gaussians;
 mod health;
 mod jobs;
@@ -34,6 +35,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/clips/{id}/gaussians", post(gaussians::decode))
         .route("/v1/clips/{id}/render", post(render::render))
         .route("/v1/clips/{id}/stream", post(stream::stream))
+        .route("/v1/clips/{id}/export", post(export::export))
         .route("/v1/clips/{id}/refine", post(jobs::submit))
         .route("/v1/jobs", get(jobs::list))
         // Cancelling is POST .../cancel; a job's record stays readable (there is no DELETE).

@@ -51,14 +51,7 @@ pub async fn stream(
     let service = state.service()?.clone();
     json::check_body(&body, service.limits.max_times)?;
     let request: Request = json::typed(body)?;
-    let spacing = match (request.step, request.fps) {
-        (Some(step), None) => Spacing::Step(step),
-        (None, Some(fps)) => Spacing::Fps(fps),
-        (None, None) => Spacing::Source,
-        (Some(_), Some(_)) => {
-            return Err(ServiceError::invalid("give \"step\" or \"fps\", not both"));
-        }
-    };
+    let spacing = Spacing::stated(request.step, request.fps)?;
     let defaults = EncodeOptions::default();
     let options = EncodeOptions {
         position_error: request.position_error.unwrap_or(defaults.position_error),
