@@ -4,6 +4,14 @@
 //!
 //! A worker that dies mid-job simply stops reporting: the server's lease on the job runs out and
 //! the job is retried on another attempt or failed. Nothing here has to clean up after a crash.
+//!
+//! A worker asked to stop (the `shutdown` channel of [`run`] turns true: the binary does so on
+//! SIGTERM or Ctrl-C) drains instead: it takes no new job (a `Take` in flight is abandoned), stops
+//! the job it holds at its next denoising step and hands it back (`Release`: queued again, the
+//! attempt not counted), then [`run`] returns. A job that finishes before its next step is sent
+//! as usual. Whatever the drain does not get to (a step longer than the binary's drain timeout, a
+//! job handed over just as its `Take` was abandoned, an unreachable server) the lease takes back,
+//! as after a crash.
 
 use std::ops::ControlFlow;
 use std::sync::Arc;
@@ -13,6 +21,7 @@ use c4g_proto::v1 as pb;
 use c4g_proto::v1::jobs_client::JobsClient;
 use image::RgbImage;
 use image::imageops::FilterType;
+use tokio::sync::watch;
 use tonic::metadata::MetadataValue;
 use tonic::service::Interceptor;
 use tonic::service::interceptor::InterceptedService;
@@ -56,8 +65,16 @@ pub struct WorkerConfig {
     pub name: String,
 }
 
-/// Runs jobs until the process is stopped.
-pub async fn run(config: WorkerConfig, pipeline: Arc<Pipeline>) -> Result<(), String> {
+/// Why a worker hands a job back in `Release`.
+const STOPPING: &str = "the worker is stopping";
+
+/// Runs jobs until `shutdown` turns true, then drains (see the module documentation) and
+/// returns. A dropped sender never stops the worker.
+pub async fn run(
+    config: WorkerConfig,
+    pipeline: Arc<Pipeline>,
+    mut shutdown: watch::Receiver<bool>,
+) -> Result<(), String> {
     let auth = match &config.api_key {
         Some(key) => Some(
             format!("Bearer {key}")
@@ -75,15 +92,20 @@ pub async fn run(config: WorkerConfig, pipeline: Arc<Pipeline>) -> Result<(), St
     let m = pipeline.package().manifest();
     tracing::info!(server = %config.server, worker = %config.name, model = %m.name, "worker started");
     loop {
-        let take = client
-            .take(pb::TakeRequest {
-                worker: config.name.clone(),
-                wait_ms: TAKE_WAIT.as_millis() as u32,
-                frames: m.frames as u32,
-                width: m.width as u32,
-                height: m.height as u32,
-            })
-            .await;
+        if *shutdown.borrow() {
+            break;
+        }
+        let take = client.take(pb::TakeRequest {
+            worker: config.name.clone(),
+            wait_ms: TAKE_WAIT.as_millis() as u32,
+            frames: m.frames as u32,
+            width: m.width as u32,
+            height: m.height as u32,
+        });
+        let take = tokio::select! {
+            take = take => take,
+            () = stopping(&mut shutdown) => break,
+        };
         let job = match take {
             Ok(response) => response.into_inner().job,
             Err(status) if status.code() == tonic::Code::Unauthenticated => {
@@ -94,23 +116,60 @@ pub async fn run(config: WorkerConfig, pipeline: Arc<Pipeline>) -> Result<(), St
             }
             Err(status) => {
                 tracing::warn!("cannot reach the server: {}", status.message());
-                tokio::time::sleep(RECONNECT_PAUSE).await;
-                continue;
+                tokio::select! {
+                    () = tokio::time::sleep(RECONNECT_PAUSE) => continue,
+                    () = stopping(&mut shutdown) => break,
+                }
             }
         };
         if let Some(job) = job {
-            run_job(&mut client, &config.name, &pipeline, job).await;
+            run_job(&mut client, &config.name, &pipeline, job, &shutdown).await;
         }
+    }
+    tracing::info!(worker = %config.name, "worker stopped: it takes no more jobs");
+    Ok(())
+}
+
+/// Resolves once `shutdown` is true; never when its sender is gone.
+async fn stopping(shutdown: &mut watch::Receiver<bool>) {
+    if shutdown.wait_for(|stop| *stop).await.is_err() {
+        std::future::pending::<()>().await;
     }
 }
 
-async fn run_job(client: &mut Client, worker: &str, pipeline: &Arc<Pipeline>, job: pb::RefineJob) {
+async fn run_job(
+    client: &mut Client,
+    worker: &str,
+    pipeline: &Arc<Pipeline>,
+    job: pb::RefineJob,
+    shutdown: &watch::Receiver<bool>,
+) {
     let id = job.job_id.clone();
     tracing::info!(job = %id, attempt = job.attempt, frames = job.frames.len(), "job started");
     let started = Instant::now();
     let reactive = job.reactive.clone();
-    let outcome = refine(client.clone(), worker, pipeline.clone(), job).await;
+    let outcome = refine(
+        client.clone(),
+        worker,
+        pipeline.clone(),
+        job,
+        shutdown.clone(),
+    )
+    .await;
     let report = match outcome {
+        // Stopped for the worker's own shutdown, not the server's cancellation (were it both,
+        // the server cancels the job on release): the job goes back to the queue.
+        Err(e) if e.kind() == ErrorKind::Cancelled && *shutdown.borrow() => {
+            tracing::info!(job = %id, "stopping: handing the job back ({e})");
+            client
+                .release(pb::ReleaseRequest {
+                    job_id: id.clone(),
+                    worker: worker.to_owned(),
+                    reason: STOPPING.to_owned(),
+                })
+                .await
+                .map(|_| "released: it is queued again, the attempt not counted")
+        }
         Ok(frames) => {
             let reactive: Vec<Vec<u8>> = frames
                 .into_iter()
@@ -170,6 +229,7 @@ async fn refine(
     worker: &str,
     pipeline: Arc<Pipeline>,
     job: pb::RefineJob,
+    shutdown: watch::Receiver<bool>,
 ) -> Result<Vec<Vec<u8>>, RefinerError> {
     let handle = tokio::runtime::Handle::current();
     let worker = worker.to_owned();
@@ -182,6 +242,10 @@ async fn refine(
         let id = job.job_id;
         let mut client = client;
         let mut progress = |step: usize, steps: usize| {
+            // A stopping worker ends the job here, at the first step after the signal.
+            if *shutdown.borrow() {
+                return ControlFlow::Break(());
+            }
             let report = pb::ProgressRequest {
                 job_id: id.clone(),
                 worker: worker.clone(),

@@ -9,8 +9,8 @@
 mod camera;
 /// The crate's one error type.
 mod error;
-/// Files and payloads: 3DGS `.ply`, antimatter15 `.splat`, time series of sets, `C4GS` frames,
-/// `C4GV` compact streams.
+/// Files and payloads: 3DGS `.ply`, antimatter15 `.splat`, Niantic `.spz`, time series of sets
+/// (a directory, a zip of frames, a fitted `.splatv`), `C4GS` frames, `C4GV` compact streams.
 pub mod formats;
 /// Gaussian sets: the canonical layout, columns, optional feature vectors.
 mod gaussians;
@@ -20,6 +20,9 @@ pub mod metrics;
 pub mod pruning;
 /// Rasterizers: the forward model, its constants and the CPU (and, with `gpu`, wgpu) renderers.
 pub mod raster;
+/// The unit tests' deterministic generator.
+#[cfg(test)]
+mod test_rng;
 /// Camera paths: interpolation and the orbit, spiral and dolly presets.
 pub mod trajectory;
 

@@ -174,6 +174,8 @@ fn main() {
         (2, "", r#"{"trajectory":{"kind":"dolly","distance":0.5},"steps":2,"seed":0,"caption":"a scene"}"#.to_owned()),
         (8, "", r#"{"step":0.1,"position_error":0.001}"#.to_owned()),
         (8, "", r#"{"fps":20,"quality":"fast","keyframe_interval":4}"#.to_owned()),
+        (9, "", r#"{"format":"spz_zip","step":0.2}"#.to_owned()),
+        (9, "", r#"{"format":"splatv","start":0.1,"end":0.3,"fps":10,"quality":"fast"}"#.to_owned()),
         (3, "max_frames=2&fps=4", String::new()),
         (4, "0", String::new()),
         (5, CLIP_MARK, String::new()),

@@ -125,6 +125,11 @@ pub struct Config {
     /// and its connection freed.
     #[arg(long, env = "C4G_BODY_TIMEOUT_S", default_value_t = 300.0)]
     pub body_timeout_s: f64,
+    /// On SIGTERM or Ctrl-C, how long requests in flight may take to finish, in seconds: `/ready`
+    /// answers 503 `draining` at once, no new connection is taken, and what is still open when
+    /// the time is up is cut.
+    #[arg(long, env = "C4G_DRAIN_TIMEOUT_S", default_value_t = 30.0)]
+    pub drain_timeout_s: f64,
     /// Time limit for reading media with FFmpeg and for one encode, in seconds.
     #[arg(long, env = "C4G_INTAKE_TIMEOUT_S", default_value_t = 120)]
     pub intake_timeout_s: u64,
@@ -277,6 +282,13 @@ impl Config {
     /// How long a request body may take to arrive (at least a millisecond).
     pub fn body_timeout(&self) -> Duration {
         Duration::try_from_secs_f64(self.body_timeout_s)
+            .unwrap_or(Duration::MAX)
+            .max(Duration::from_millis(1))
+    }
+
+    /// How long a drain may last (at least a millisecond).
+    pub fn drain_timeout(&self) -> Duration {
+        Duration::try_from_secs_f64(self.drain_timeout_s)
             .unwrap_or(Duration::MAX)
             .max(Duration::from_millis(1))
     }

@@ -18,7 +18,7 @@ pub const GRPC_KIND_KEY: &str = "c4g-error-kind";
 pub fn http_status(kind: ServiceErrorKind) -> StatusCode {
     use ServiceErrorKind as K;
     match kind {
-        K::NotReady | K::Overloaded => StatusCode::SERVICE_UNAVAILABLE,
+        K::NotReady | K::Draining | K::Overloaded => StatusCode::SERVICE_UNAVAILABLE,
         K::InvalidInput => StatusCode::BAD_REQUEST,
         K::Unauthorized => StatusCode::UNAUTHORIZED,
         K::NotFound => StatusCode::NOT_FOUND,
@@ -36,7 +36,7 @@ pub fn http_status(kind: ServiceErrorKind) -> StatusCode {
 pub fn grpc_code(kind: ServiceErrorKind) -> Code {
     use ServiceErrorKind as K;
     match kind {
-        K::NotReady | K::Overloaded => Code::Unavailable,
+        K::NotReady | K::Draining | K::Overloaded => Code::Unavailable,
         K::InvalidInput | K::UnsupportedMedia | K::UnreadableMedia | K::Unsupported => {
             Code::InvalidArgument
         }
@@ -105,10 +105,16 @@ mod tests {
     use super::*;
 
     /// Every kind, its name, HTTP status and gRPC code: the contract `docs/api.md` documents.
-    const TABLE: [(ServiceErrorKind, &str, u16, Code); 13] = [
+    const TABLE: [(ServiceErrorKind, &str, u16, Code); 14] = [
         (
             ServiceErrorKind::NotReady,
             "not_ready",
+            503,
+            Code::Unavailable,
+        ),
+        (
+            ServiceErrorKind::Draining,
+            "draining",
             503,
             Code::Unavailable,
         ),
@@ -190,18 +196,19 @@ mod tests {
         for kind in ServiceErrorKind::ALL {
             let position = match kind {
                 ServiceErrorKind::NotReady => 0,
-                ServiceErrorKind::InvalidInput => 1,
-                ServiceErrorKind::Unauthorized => 2,
-                ServiceErrorKind::NotFound => 3,
-                ServiceErrorKind::TooLarge => 4,
-                ServiceErrorKind::UnsupportedMedia => 5,
-                ServiceErrorKind::UnreadableMedia => 6,
-                ServiceErrorKind::Unsupported => 7,
-                ServiceErrorKind::Busy => 8,
-                ServiceErrorKind::Overloaded => 9,
-                ServiceErrorKind::InsufficientStorage => 10,
-                ServiceErrorKind::TimedOut => 11,
-                ServiceErrorKind::Internal => 12,
+                ServiceErrorKind::Draining => 1,
+                ServiceErrorKind::InvalidInput => 2,
+                ServiceErrorKind::Unauthorized => 3,
+                ServiceErrorKind::NotFound => 4,
+                ServiceErrorKind::TooLarge => 5,
+                ServiceErrorKind::UnsupportedMedia => 6,
+                ServiceErrorKind::UnreadableMedia => 7,
+                ServiceErrorKind::Unsupported => 8,
+                ServiceErrorKind::Busy => 9,
+                ServiceErrorKind::Overloaded => 10,
+                ServiceErrorKind::InsufficientStorage => 11,
+                ServiceErrorKind::TimedOut => 12,
+                ServiceErrorKind::Internal => 13,
             };
             assert_eq!(ServiceErrorKind::ALL[position], kind);
         }

@@ -194,7 +194,10 @@ impl Edge {
         };
         let head = String::from_utf8_lossy(head).replace(CLIP_MARK, &self.clip_id);
         let id = &self.clip_id;
-        let (method, uri, content_type, body) = match route % 9 {
+        // Route 9 is the export; every other byte picks among the first nine routes as it did
+        // before the export came, so the corpora keep their meaning.
+        let route = if route == 9 { 9 } else { route % 9 };
+        let (method, uri, content_type, body) = match route {
             0 => (
                 Method::POST,
                 format!("/v1/clips/{id}/gaussians"),
@@ -231,6 +234,12 @@ impl Edge {
             8 => (
                 Method::POST,
                 format!("/v1/clips/{id}/stream"),
+                "application/json",
+                rest,
+            ),
+            9 => (
+                Method::POST,
+                format!("/v1/clips/{id}/export"),
                 "application/json",
                 rest,
             ),

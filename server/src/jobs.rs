@@ -386,9 +386,10 @@ impl JobStore {
         }
     }
 
-    /// Puts a job `worker` took back in the queue without counting the attempt: the server
-    /// could not hand it over for a passing reason (its work queue was full), which says
-    /// nothing about the job.
+    /// Puts a job `worker` took back in the queue without counting the attempt, for a passing
+    /// reason that says nothing about the job: the server could not hand it over (its work
+    /// queue was full), or the worker is stopping (`Release`). A job cancelled meanwhile is
+    /// cancelled instead.
     pub fn release(&self, id: &str, worker: &str, why: &str) -> Result<JobRecord, ServiceError> {
         self.update(id, |record, lease_until| {
             Self::check_owner(record, worker)?;
@@ -396,7 +397,7 @@ impl JobStore {
             record.worker = None;
             record.progress = None;
             record.history.push(format!(
-                "attempt {}: not handed to {worker} ({why}); queued again",
+                "attempt {}: released from {worker} ({why}); queued again, the attempt not counted",
                 record.attempt
             ));
             record.state = if record.cancel_requested {

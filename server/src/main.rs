@@ -97,9 +97,18 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
     let app = c4g_server::body_deadline::layer(router(state.clone()), config.body_timeout());
     let server = tokio::spawn(
         axum::serve(listener, app)
-            .with_graceful_shutdown(shutdown_signal())
+            .with_graceful_shutdown(shutdown_signal(state.clone()))
             .into_future(),
     );
+    // The drain's deadline: what is still open when it passes is cut (the process exits).
+    let deadline = {
+        let (drained, timeout) = (state.drained(), config.drain_timeout());
+        async move {
+            drained.await;
+            tokio::time::sleep(timeout).await;
+            timeout
+        }
+    };
     // A model that cannot load (a missing or corrupt graph, no ONNX Runtime) ends the process
     // with the reason: a server that can never be ready helps nobody, and an orchestrator sees
     // the failed start. Until then /health answers and /ready says 503 not_ready.
@@ -115,11 +124,18 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
             }
         });
     }
-    server.await??;
+    tokio::select! {
+        served = server => served??,
+        timeout = deadline => tracing::warn!(
+            "the drain took longer than {timeout:?} (C4G_DRAIN_TIMEOUT_S): cutting the requests still open"
+        ),
+    }
+    tracing::info!("stopped");
     Ok(())
 }
 
-async fn shutdown_signal() {
+/// Resolves on SIGTERM or Ctrl-C, having started the drain.
+async fn shutdown_signal(state: AppState) {
     let ctrl_c = async {
         let _ = tokio::signal::ctrl_c().await;
     };
@@ -132,5 +148,9 @@ async fn shutdown_signal() {
         }
     };
     tokio::select! { _ = ctrl_c => {}, _ = terminate => {} }
-    tracing::info!("shutting down");
+    state.begin_drain();
+    tracing::info!(
+        "draining: /ready answers 503, no new connections, requests in flight finish within {:?}",
+        state.config().drain_timeout()
+    );
 }

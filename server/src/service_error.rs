@@ -17,6 +17,9 @@ pub enum ServiceError {
     /// The model is still loading.
     #[error("the model is still loading; retry shortly")]
     NotReady,
+    /// The server is shutting down: it finishes what it has and takes nothing new.
+    #[error("the server is shutting down; retry (another replica will answer)")]
+    Draining,
     /// The request is malformed or asks for something impossible.
     #[error("{0}")]
     InvalidInput(String),
@@ -70,6 +73,8 @@ pub enum ServiceError {
 pub enum ServiceErrorKind {
     /// The model is still loading: retry.
     NotReady,
+    /// The server is shutting down: retry, elsewhere.
+    Draining,
     /// The caller's request is wrong: the caller fixes it.
     InvalidInput,
     /// No or a wrong API key.
@@ -98,8 +103,9 @@ pub enum ServiceErrorKind {
 
 impl ServiceErrorKind {
     /// Every kind, for tables and tests.
-    pub const ALL: [Self; 13] = [
+    pub const ALL: [Self; 14] = [
         Self::NotReady,
+        Self::Draining,
         Self::InvalidInput,
         Self::Unauthorized,
         Self::NotFound,
@@ -118,6 +124,7 @@ impl ServiceErrorKind {
     pub fn name(self) -> &'static str {
         match self {
             Self::NotReady => "not_ready",
+            Self::Draining => "draining",
             Self::InvalidInput => "invalid_input",
             Self::Unauthorized => "unauthorized",
             Self::NotFound => "not_found",
@@ -162,6 +169,7 @@ impl ServiceError {
         use ServiceErrorKind as K;
         match self {
             Self::NotReady => K::NotReady,
+            Self::Draining => K::Draining,
             Self::InvalidInput(_) => K::InvalidInput,
             Self::Unauthorized => K::Unauthorized,
             Self::NotFound(_) => K::NotFound,
@@ -182,7 +190,7 @@ impl ServiceError {
     pub fn retry_after(&self) -> Option<Duration> {
         match self {
             Self::Busy { retry_after } | Self::Overloaded { retry_after } => Some(*retry_after),
-            Self::NotReady => Some(Duration::from_secs(1)),
+            Self::NotReady | Self::Draining => Some(Duration::from_secs(1)),
             _ => None,
         }
     }

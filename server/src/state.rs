@@ -1,9 +1,12 @@
 //! What every handler shares. The model loads in the background, so `/health` answers at once
-//! and `/ready` tells when the service can serve.
+//! and `/ready` tells when the service can serve; once the server drains (SIGTERM), `/ready`
+//! says so and the requests that would wait on (job events, a worker's wait for a job) stop
+//! waiting.
 
 use std::sync::{Arc, OnceLock};
 
 use metrics_exporter_prometheus::PrometheusHandle;
+use tokio::sync::watch;
 
 use crate::ServiceError;
 use crate::auth::ApiKey;
@@ -21,6 +24,8 @@ struct Shared {
     config: Config,
     api_key: Option<ApiKey>,
     metrics: Option<PrometheusHandle>,
+    /// True from the start of the drain on.
+    draining: watch::Sender<bool>,
 }
 
 impl AppState {
@@ -33,6 +38,7 @@ impl AppState {
                 config,
                 api_key,
                 metrics,
+                draining: watch::Sender::new(false),
             }),
         }
     }
@@ -60,5 +66,23 @@ impl AppState {
     /// The Prometheus exposition, when metrics are recorded.
     pub fn metrics(&self) -> Option<&PrometheusHandle> {
         self.shared.metrics.as_ref()
+    }
+
+    /// Starts the drain: from now on the server finishes what it has and takes nothing new.
+    pub fn begin_drain(&self) {
+        self.shared.draining.send_replace(true);
+    }
+
+    /// Whether the server is draining.
+    pub fn is_draining(&self) -> bool {
+        *self.shared.draining.borrow()
+    }
+
+    /// Resolves once the server drains (at once if it already does).
+    pub fn drained(&self) -> impl std::future::Future<Output = ()> + Send + use<> {
+        let mut draining = self.shared.draining.subscribe();
+        async move {
+            let _ = draining.wait_for(|d| *d).await;
+        }
     }
 }

@@ -55,7 +55,15 @@ impl Jobs for Workers {
         let (w, h) = service.image_size(Some(request.width), Some(request.height))?;
         let wait = Duration::from_millis(u64::from(request.wait_ms)).min(MAX_WAIT);
         loop {
-            let Some(record) = service.jobs.take(&request.worker, wait).await? else {
+            // A draining server hands out no job, and stops a worker's wait when the drain starts.
+            if self.state.is_draining() {
+                return Ok(Response::new(pb::TakeResponse { job: None }));
+            }
+            let taken = tokio::select! {
+                taken = service.jobs.take(&request.worker, wait) => taken?,
+                () = self.state.drained() => None,
+            };
+            let Some(record) = taken else {
                 return Ok(Response::new(pb::TakeResponse { job: None }));
             };
             match build_job(&service, &record, request.frames, w, h).await {
@@ -173,5 +181,22 @@ impl Jobs for Workers {
             tracing::warn!(job = %record.id, state = ?record.state, "worker reported: {}", r.error);
         }
         Ok(Response::new(pb::FailResponse {}))
+    }
+
+    async fn release(
+        &self,
+        request: Request<pb::ReleaseRequest>,
+    ) -> Result<Response<pb::ReleaseResponse>, Status> {
+        let r = request.into_inner();
+        let why = if r.reason.is_empty() {
+            "the worker is stopping"
+        } else {
+            r.reason.as_str()
+        };
+        // Not the job's fault: its attempt is not counted. Only the worker that holds the job may
+        // hand it back (the same `drop it` answer as the other calls).
+        let record = self.service()?.jobs.release(&r.job_id, &r.worker, why)?;
+        tracing::info!(job = %record.id, worker = %r.worker, state = ?record.state, reason = why, "job released: its worker is stopping");
+        Ok(Response::new(pb::ReleaseResponse {}))
     }
 }

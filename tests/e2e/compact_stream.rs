@@ -8,22 +8,17 @@
 //! rounding of the values compared (the bounds are stated in f64 of the decoded f32s).
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
-use c4g_e2e::{Server, ort_available, upload_synthetic};
+use c4g_e2e::{Server, ort_available, post_json, upload_synthetic};
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
 use c4g_renderer::GaussianSet;
 use c4g_renderer::formats::{c4gs, c4gv};
-use reqwest::blocking::Client;
 use serde_json::{Value, json};
 
 const SLACK: f64 = 1e-6;
 
 fn post(server: &Server, path: &str, body: Value) -> reqwest::blocking::Response {
-    Client::new()
-        .post(server.at(path))
-        .json(&body)
-        .send()
-        .unwrap()
+    post_json(server, path, &body)
 }
 
 /// The exact sets at `times`, and their C4GS f32 size.

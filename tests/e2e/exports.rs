@@ -21,14 +21,15 @@
 use std::io::Read;
 use std::process::Command;
 
-use c4g_e2e::{Server, node_packages, ort_available, upload_synthetic, venv_python, workspace};
+use c4g_e2e::{
+    Server, node_packages, ort_available, post_json, upload_synthetic, venv_python, workspace,
+};
 use c4g_renderer::formats::{c4gs, ply, splatv, spz};
 use c4g_renderer::metrics::psnr;
 use c4g_renderer::{
     Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, Rasterizer, RenderOptions,
 };
 use glam::Affine3A;
-use reqwest::blocking::Client;
 use serde_json::{Value, json};
 
 /// `.ply.zip` against the exact sets: f32 storage of positions, and of `ln`, `logit` and the SH
@@ -50,11 +51,7 @@ const SPZ_MIN_DB: f64 = 48.0;
 const SIDE: u32 = 128;
 
 fn post(server: &Server, path: &str, body: Value) -> reqwest::blocking::Response {
-    Client::new()
-        .post(server.at(path))
-        .json(&body)
-        .send()
-        .unwrap()
+    post_json(server, path, &body)
 }
 
 fn export(server: &Server, clip: &str, body: Value) -> (Vec<u8>, reqwest::header::HeaderMap) {

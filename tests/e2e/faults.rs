@@ -1162,3 +1162,144 @@ fn a_model_run_that_fails_mid_request_answers_500_and_the_server_keeps_serving()
     decode_ok(&server, &good);
     assert!(server.log().contains("the model produced invalid output"));
 }
+
+// ---- draining -----------------------------------------------------------------------------------
+
+/// Opens `GET /v1/jobs/{id}/events` on its own connection and reads until the first event.
+fn events_stream(addr: SocketAddr, id: &str) -> TcpStream {
+    let mut stream = TcpStream::connect(addr).unwrap();
+    write!(
+        stream,
+        "GET /v1/jobs/{id}/events HTTP/1.1\r\nHost: {addr}\r\nAccept: text/event-stream\r\n\r\n"
+    )
+    .unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(20)))
+        .unwrap();
+    let mut seen = Vec::new();
+    let mut buffer = [0u8; 4096];
+    while !String::from_utf8_lossy(&seen).contains("event: job") {
+        let n = stream.read(&mut buffer).unwrap();
+        assert!(n > 0, "the event stream closed before its first event");
+        seen.extend_from_slice(&buffer[..n]);
+    }
+    stream
+}
+
+/// A ready server on a new store that logs at info (where the drain is told) and drains within
+/// `timeout` seconds.
+fn draining_server(timeout: &str) -> (tempfile::TempDir, ServerProcess) {
+    let store = tempfile::tempdir().unwrap();
+    let mut server = ServerProcess::spawn(
+        store.path(),
+        ANY_PORT,
+        &[],
+        &[("RUST_LOG", "info"), ("C4G_DRAIN_TIMEOUT_S", timeout)],
+    );
+    server.wait_ready();
+    (store, server)
+}
+
+/// Reads until the server closes the connection; how long that took.
+fn until_closed(stream: &mut TcpStream, within: Duration) -> Duration {
+    let started = Instant::now();
+    stream.set_read_timeout(Some(within)).unwrap();
+    let mut buffer = [0u8; 4096];
+    loop {
+        match stream.read(&mut buffer) {
+            Ok(0) => return started.elapsed(),
+            Ok(_) => {}
+            Err(e) => panic!("the connection was still open after {within:?}: {e}"),
+        }
+    }
+}
+
+/// SIGTERM drains (`docs/deploy.md`, "Draining"): an upload whose body is still arriving
+/// finishes and is stored, a job's event stream (which would otherwise last as long as the job)
+/// ends at once, no new connection is taken, and the process exits 0 as soon as the upload has
+/// been answered, well inside its 30 s deadline.
+#[test]
+fn sigterm_lets_requests_in_flight_finish_ends_event_streams_and_exits_0() {
+    if !ort_available() {
+        return;
+    }
+    let (store, mut server) = draining_server("30");
+    // A queued job (no worker runs) and its event stream.
+    let queued_clip = upload_new(&server, 1.0);
+    let job_id = submit(&server, &queued_clip, 2);
+    let mut events = events_stream(server.addr, &job_id);
+    // An upload of another clip, half its body sent.
+    let (frames, times) = clip(2.0);
+    let body = multipart_bytes(&frames, &times, BOUNDARY);
+    let mut uploading = upload_head(server.addr, body.len());
+    uploading.write_all(&body[..body.len() / 2]).unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+
+    server.terminate();
+    server.wait_for_log("draining", Duration::from_secs(10));
+    let ended = until_closed(&mut events, Duration::from_secs(10));
+    assert!(
+        TcpStream::connect_timeout(&server.addr, Duration::from_secs(2)).is_err(),
+        "a new connection was taken while draining"
+    );
+    // The rest of the body, after the drain began: the upload is answered and stored.
+    uploading.write_all(&body[body.len() / 2..]).unwrap();
+    let (status, text) = read_response(&mut uploading);
+    assert_eq!(status, 201, "{text}");
+    let stored: Value = serde_json::from_str(&text).unwrap();
+    let started = Instant::now();
+    let exit = server.wait_exit(Duration::from_secs(25));
+    assert!(exit.success(), "{exit}:\n{}", server.log());
+    eprintln!(
+        "drain: the event stream closed {ended:?} after the server logged the drain; it exited {:?} after \
+         the upload was answered",
+        started.elapsed()
+    );
+    assert!(
+        !server.log().contains("took longer than"),
+        "{}",
+        server.log()
+    );
+
+    // Both clips are there after a restart, and the job is still queued.
+    let again = ServerProcess::start(store.path(), ANY_PORT, &[]);
+    for id in [queued_clip.as_str(), stored["id"].as_str().unwrap()] {
+        assert_eq!(
+            get(&again, &format!("/v1/clips/{id}")).status(),
+            200,
+            "{id}"
+        );
+    }
+    assert_eq!(job(&again, &job_id)["state"], "queued");
+}
+
+/// A request that never finishes (a body that stops arriving) holds a drain only until
+/// `C4G_DRAIN_TIMEOUT_S`: then it is cut, the process says so and exits, far before the body
+/// timeout (300 s) would have ended the request.
+#[test]
+fn a_drain_that_outlasts_its_deadline_is_cut_when_the_deadline_passes() {
+    if !ort_available() {
+        return;
+    }
+    let (_store, mut server) = draining_server("1");
+    let (frames, times) = clip(3.0);
+    let body = multipart_bytes(&frames, &times, BOUNDARY);
+    let mut stuck = upload_head(server.addr, body.len());
+    stuck.write_all(&body[..body.len() / 3]).unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    let started = Instant::now();
+    server.terminate();
+    let exit = server.wait_exit(Duration::from_secs(15));
+    let took = started.elapsed();
+    assert!(exit.success(), "{exit}:\n{}", server.log());
+    assert!(
+        server.log().contains("took longer than"),
+        "{}",
+        server.log()
+    );
+    assert!(
+        took >= Duration::from_secs(1),
+        "exited after {took:?}, before its deadline"
+    );
+    eprintln!("drain cut at its 1 s deadline: exited {took:?} after SIGTERM");
+}

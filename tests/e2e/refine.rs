@@ -1,7 +1,8 @@
 //! Refinement end to end: `c4g-server` and `c4g-refiner` as processes on loopback, with the tiny
 //! Wan-VACE fixture package. A rendered trajectory of a clip is refined; a worker killed mid-job
-//! leaves the job queued for another attempt (never stuck in `running`), and a cancelled job
-//! stops at its worker's next step.
+//! leaves the job queued for another attempt (never stuck in `running`), a worker sent SIGTERM
+//! hands its job back without spending an attempt, and a cancelled job stops at its worker's next
+//! step.
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
 use std::io::{BufRead, BufReader};
@@ -296,4 +297,85 @@ fn a_killed_worker_leaves_its_job_queued_for_another_attempt_and_cancelling_stop
         .send()
         .unwrap();
     assert_eq!(result.status(), 400);
+}
+
+/// A rolling update sends every worker SIGTERM: the worker must not cost its job an attempt nor
+/// leave it for the lease to take back. Checks that a worker sent SIGTERM mid-job (1) exits 0
+/// within seconds, well under the lease (60 s here: the lease running out cannot be what
+/// requeues the job), (2) has by then handed the job back (`Release`): `queued` on its first
+/// attempt still, the history saying why, (3) that the job runs anew and finishes on a worker
+/// started afterwards, and (4) that an idle worker (waiting in `Take`) exits 0 at once too.
+#[test]
+fn a_worker_sent_sigterm_hands_its_job_back_without_spending_an_attempt_and_exits() {
+    if !ort_available() {
+        return;
+    }
+    let server = Server::start(&["--job-lease-s", "60", "--job-attempts", "3"]);
+    let clip = upload_synthetic(&server);
+    let client = Client::new();
+    let mut first = worker(&server, "rolled");
+    // Enough steps that the job is still running when the signal lands (a step of the tiny
+    // fixture takes ~10 ms); few enough that the second worker finishes it in seconds.
+    let submitted: Value = client
+        .post(server.at(&format!("/v1/clips/{clip}/refine")))
+        .json(&json!({"steps": 300, "seed": 5}))
+        .send()
+        .unwrap()
+        .json()
+        .unwrap();
+    let id = submitted["id"].as_str().unwrap().to_owned();
+    wait_for(&client, &server, &id, Duration::from_secs(120), |j| {
+        j["state"] == "running"
+            && j["worker"] == "rolled"
+            && j["progress"]["step"].as_u64().unwrap_or(0) >= 1
+    });
+    let took = terminate(&mut first);
+    eprintln!("the busy worker exited {took:?} after SIGTERM");
+
+    // Handed back before the worker exited: queued, on the same attempt, saying why.
+    let released = job(&client, &server, &id);
+    assert_eq!(released["state"], "queued", "{released:#}");
+    assert_eq!(released["attempt"], 1, "{released:#}");
+    assert!(released["worker"].is_null(), "{released:#}");
+    let history = released["history"][0].as_str().unwrap();
+    assert!(
+        history.contains("rolled") && history.contains("the worker is stopping"),
+        "{released:#}"
+    );
+
+    // Another worker runs it from the start, to the end.
+    let mut second = worker(&server, "successor");
+    let done = wait_for(&client, &server, &id, Duration::from_secs(120), |j| {
+        j["state"] != "queued" && j["state"] != "running"
+    });
+    assert_eq!(done["state"], "done", "{done:#}");
+    assert_eq!(done["worker"], "successor", "{done:#}");
+    assert_eq!(done["attempt"], 1, "{done:#}");
+    assert!(done["result_frames"].as_u64().unwrap() >= 1, "{done:#}");
+
+    let took = terminate(&mut second);
+    eprintln!("the idle worker exited {took:?} after SIGTERM");
+}
+
+/// Sends `worker` SIGTERM and waits for it to exit, at most 15 s; asserts it exited 0, and
+/// returns how long it took.
+fn terminate(worker: &mut RefinerWorker) -> Duration {
+    let signalled = Instant::now();
+    let kill = Command::new("kill")
+        .args(["-TERM", &worker.0.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(kill.success());
+    let status = loop {
+        if let Some(status) = worker.0.try_wait().unwrap() {
+            break status;
+        }
+        assert!(
+            signalled.elapsed() < Duration::from_secs(15),
+            "the worker did not exit within 15 s of SIGTERM"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    assert!(status.success(), "{status:?}");
+    signalled.elapsed()
 }

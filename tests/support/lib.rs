@@ -485,6 +485,15 @@ impl ServerProcess {
         self.child.try_wait().unwrap().is_none()
     }
 
+    /// Sends SIGTERM: the server drains (`docs/deploy.md`), then exits by itself.
+    pub fn terminate(&self) {
+        let status = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(status.success(), "kill -TERM failed: {status}");
+    }
+
     /// Kills the process with SIGKILL (no shutdown of any kind runs) and reaps it.
     pub fn kill(mut self) {
         self.child.kill().unwrap();
@@ -647,4 +656,17 @@ pub fn venv_python() -> PathBuf {
         .filter(|p| !p.is_empty())
         .map(PathBuf::from)
         .unwrap_or_else(|| workspace().join(".venv/bin/python"))
+}
+
+/// `POST path` with a JSON body.
+pub fn post_json(
+    server: &Server,
+    path: &str,
+    body: &serde_json::Value,
+) -> reqwest::blocking::Response {
+    reqwest::blocking::Client::new()
+        .post(server.at(path))
+        .json(body)
+        .send()
+        .unwrap()
 }

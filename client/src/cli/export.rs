@@ -5,11 +5,12 @@
 use std::path::PathBuf;
 
 use anyhow::bail;
-use c4g_client::{ExportFormat, ExportOptions, GaussianFormat, Spacing};
+use c4g_client::{ExportFormat, ExportOptions, GaussianFormat};
 use indicatif::HumanBytes;
 use serde_json::json;
 
 use super::decode::{ApproximationArgs, fetch_to_file};
+use super::stream::RangeArgs;
 use super::{Context, emit_json, emit_line, write_file};
 
 #[derive(Debug, clap::Args)]
@@ -23,25 +24,13 @@ pub struct Args {
     /// The time in seconds, for .ply and .splat.
     #[arg(long = "t", value_name = "T", allow_negative_numbers = true)]
     time: Option<f64>,
-    /// First time of a range, seconds (default: the context span's start).
-    #[arg(long, allow_negative_numbers = true)]
-    start: Option<f64>,
-    /// Last time of a range, seconds (default: the context span's end).
-    #[arg(long, allow_negative_numbers = true)]
-    end: Option<f64>,
-    /// One set every STEP seconds.
-    #[arg(long, conflicts_with = "fps")]
-    step: Option<f64>,
-    /// FPS sets per second (default: the clip's frame rate).
-    #[arg(long)]
-    fps: Option<f64>,
+    #[command(flatten)]
+    range: RangeArgs,
     #[command(flatten)]
     approximation: ApproximationArgs,
 }
 
 pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
-    let ranged =
-        args.start.is_some() || args.end.is_some() || args.step.is_some() || args.fps.is_some();
     if let Some(format) = ExportFormat::from_extension(&args.output) {
         if args.time.is_some() {
             bail!("{format} holds a time range: give --start, --end, --step or --fps, not --t");
@@ -59,7 +48,7 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
     let Some(time) = args.time else {
         bail!("{format} holds one set: give its time with --t (or write .ply.zip for a range)");
     };
-    if ranged {
+    if args.range.given() {
         bail!(
             "{format} holds one set: --start, --end, --step and --fps are for .ply.zip, .spz.zip and .splatv"
         );
@@ -78,13 +67,9 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
 
 async fn export_range(cx: &Context, args: Args, format: ExportFormat) -> anyhow::Result<()> {
     let options = ExportOptions {
-        start: args.start,
-        end: args.end,
-        spacing: match (args.step, args.fps) {
-            (Some(step), _) => Some(Spacing::Step(step)),
-            (None, Some(fps)) => Some(Spacing::Fps(fps)),
-            (None, None) => None,
-        },
+        start: args.range.start,
+        end: args.range.end,
+        spacing: args.range.spacing(),
         approximation: args.approximation.approximation(),
     };
     let export = cx.client.export(&args.clip, format, &options).await?;

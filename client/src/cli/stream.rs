@@ -21,18 +21,8 @@ enum PrecisionArg {
 pub struct Args {
     /// The clip id.
     clip: String,
-    /// First time, seconds (default: the context span's start).
-    #[arg(long, allow_negative_numbers = true)]
-    start: Option<f64>,
-    /// Last time, seconds (default: the context span's end).
-    #[arg(long, allow_negative_numbers = true)]
-    end: Option<f64>,
-    /// One set every STEP seconds.
-    #[arg(long, conflicts_with = "fps")]
-    step: Option<f64>,
-    /// FPS sets per second (default: the clip's frame rate).
-    #[arg(long)]
-    fps: Option<f64>,
+    #[command(flatten)]
+    range: RangeArgs,
     /// Precision on the wire; f16 halves the transfer.
     #[arg(long, value_enum, default_value = "f32")]
     precision: PrecisionArg,
@@ -47,16 +37,44 @@ pub struct Args {
     approximation: ApproximationArgs,
 }
 
+/// A time range and its spacing (stream, export).
+#[derive(Debug, clap::Args)]
+pub(super) struct RangeArgs {
+    /// First time, seconds (default: the context span's start).
+    #[arg(long, allow_negative_numbers = true)]
+    pub(super) start: Option<f64>,
+    /// Last time, seconds (default: the context span's end).
+    #[arg(long, allow_negative_numbers = true)]
+    pub(super) end: Option<f64>,
+    /// One set every STEP seconds.
+    #[arg(long, conflicts_with = "fps")]
+    pub(super) step: Option<f64>,
+    /// FPS sets per second (default: the clip's frame rate).
+    #[arg(long)]
+    pub(super) fps: Option<f64>,
+}
+
+impl RangeArgs {
+    /// The spacing the flags ask for (none: the server's choice).
+    pub(super) fn spacing(&self) -> Option<Spacing> {
+        match (self.step, self.fps) {
+            (Some(step), _) => Some(Spacing::Step(step)),
+            (None, Some(fps)) => Some(Spacing::Fps(fps)),
+            (None, None) => None,
+        }
+    }
+
+    /// Whether any of the flags is given.
+    pub(super) fn given(&self) -> bool {
+        self.start.is_some() || self.end.is_some() || self.spacing().is_some()
+    }
+}
+
 pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
-    let spacing = match (args.step, args.fps) {
-        (Some(step), _) => Some(Spacing::Step(step)),
-        (None, Some(fps)) => Some(Spacing::Fps(fps)),
-        (None, None) => None,
-    };
     let options = StreamOptions {
-        start: args.start,
-        end: args.end,
-        spacing,
+        start: args.range.start,
+        end: args.range.end,
+        spacing: args.range.spacing(),
         precision: match args.precision {
             PrecisionArg::F32 => Precision::F32,
             PrecisionArg::F16 => Precision::F16,

@@ -272,7 +272,16 @@ def export_package(
     if training is not None:
         manifest["training"] = training
     (out / "model.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    readable_by_all(out)
     return manifest
+
+
+def readable_by_all(package: Path) -> None:
+    """Makes every file of the package readable, and its folders enterable, by every user:
+    onnx writes external weights (`*.onnx.data`) with mode 0600, which a server running as
+    another user (the container images' `c4g`) cannot read. Writable by the owner only."""
+    for path in [package, *package.rglob("*")]:
+        path.chmod(0o755 if path.is_dir() else 0o644)
 
 
 def build_model(cfg: C4GConfig, seed: int, checkpoint: Path | None) -> C4G:

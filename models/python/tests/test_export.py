@@ -92,3 +92,20 @@ def test_dynamic_frame_and_target_counts(package, official_small_dir, frames, ta
     np.testing.assert_allclose(got, expected, atol=1e-4, rtol=1e-3)
     (got_lifted,) = session(package / "feature_decoder.onnx").run(None, {**feed, "context_feature_maps": maps})
     np.testing.assert_allclose(got_lifted, expected_features, atol=1e-4, rtol=1e-3)
+
+
+def test_package_files_are_readable_by_every_user(tmp_path):
+    """The export tool's packages are served by another user (the images' `c4g`): every file is
+    0644 and every folder 0755 whatever the umask, including external weights, which onnx
+    writes 0600."""
+    from c4g.export import readable_by_all
+
+    (tmp_path / "pkg" / "sub").mkdir(parents=True)
+    weights = tmp_path / "pkg" / "encoder.onnx.data"
+    weights.write_bytes(b"x")
+    weights.chmod(0o600)
+    (tmp_path / "pkg" / "sub").chmod(0o700)
+    readable_by_all(tmp_path / "pkg")
+    assert weights.stat().st_mode & 0o777 == 0o644
+    assert (tmp_path / "pkg" / "sub").stat().st_mode & 0o777 == 0o755
+

@@ -1,14 +1,19 @@
 //! `c4g-refiner`: the refinement worker. Loads a refiner package (merging a LoRA when given) and
-//! runs the jobs `c4g-server` queues, until stopped.
+//! runs the jobs `c4g-server` queues, until stopped. SIGTERM or Ctrl-C drains: the job in hand goes
+//! back to the queue at its next denoising step and the worker exits 0 (after
+//! `--drain-timeout-s` it exits anyway; a second signal exits at once).
 
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
+use std::time::Duration;
 
 use c4g_refiner::worker::{WorkerConfig, run};
 use c4g_refiner::{LoraSpec, Pipeline, PipelineOptions, SessionOptions};
 use clap::Parser;
+use tokio::signal::unix::{SignalKind, signal};
+use tokio::sync::watch;
 use tracing_subscriber::EnvFilter;
 
 /// Refine rendered novel views with Wan2.1-VACE, for a c4g-server.
@@ -44,6 +49,12 @@ struct Args {
     /// bring precomputed prompt embeddings, and jobs with text fail.
     #[arg(long, env = "C4G_REFINER_NO_TEXT_ENCODER")]
     no_text_encoder: bool,
+    /// Seconds a stopping worker (SIGTERM, Ctrl-C) waits for its job to reach its next denoising
+    /// step and go back to the queue; past them it exits anyway, and the server takes the job
+    /// back when its lease runs out (counting the attempt). Keep it under the orchestrator's
+    /// grace period before SIGKILL.
+    #[arg(long, env = "C4G_DRAIN_TIMEOUT_S", default_value_t = 30)]
+    drain_timeout_s: u64,
 }
 
 #[tokio::main]
@@ -92,14 +103,55 @@ async fn main() -> ExitCode {
         api_key: args.api_key,
         name,
     };
+    let mut terminate = match signal(SignalKind::terminate()) {
+        Ok(terminate) => terminate,
+        Err(e) => {
+            tracing::error!("cannot listen for SIGTERM: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let (stop, shutdown) = watch::channel(false);
+    let worker = run(config, pipeline, shutdown);
+    tokio::pin!(worker);
+    let signal = tokio::select! {
+        result = &mut worker => return exit_code(result),
+        _ = terminate.recv() => "SIGTERM",
+        _ = tokio::signal::ctrl_c() => "Ctrl-C",
+    };
+    tracing::info!(
+        drain_timeout_s = args.drain_timeout_s,
+        "{signal}: stopping; a job in hand goes back to the queue at its next step"
+    );
+    stop.send_replace(true);
+    let drain = Duration::from_secs(args.drain_timeout_s);
     tokio::select! {
-        result = run(config, pipeline) => match result {
-            Ok(()) => ExitCode::SUCCESS,
-            Err(e) => {
-                tracing::error!("{e}");
-                ExitCode::FAILURE
-            }
-        },
-        _ = tokio::signal::ctrl_c() => ExitCode::SUCCESS,
+        result = &mut worker => exit_code(result),
+        () = tokio::time::sleep(drain) => {
+            tracing::warn!(
+                "the job did not stop within {} s: exiting without handing it back (the server \
+                 takes it back when its lease runs out)",
+                args.drain_timeout_s
+            );
+            // Not a return: dropping the runtime would wait for the pipeline's blocking thread.
+            std::process::exit(0)
+        }
+        _ = terminate.recv() => {
+            tracing::warn!("a second SIGTERM: exiting at once");
+            std::process::exit(0)
+        }
+        _ = tokio::signal::ctrl_c() => {
+            tracing::warn!("a second Ctrl-C: exiting at once");
+            std::process::exit(0)
+        }
+    }
+}
+
+fn exit_code(result: Result<(), String>) -> ExitCode {
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            tracing::error!("{e}");
+            ExitCode::FAILURE
+        }
     }
 }

@@ -1505,28 +1505,8 @@ fn format_error(reason: String) -> RendererError {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_rng::{Rng, unit};
     use proptest::prelude::*;
-
-    /// A small deterministic generator (splitmix64), so that the clips are the same every run.
-    struct Rng(u64);
-
-    impl Rng {
-        fn next(&mut self) -> f64 {
-            self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-        }
-        fn range(&mut self, lo: f64, hi: f64) -> f32 {
-            (lo + (hi - lo) * self.next()) as f32
-        }
-    }
-
-    fn unit(q: [f64; 4]) -> [f32; 4] {
-        let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-        q.map(|v| (v / n) as f32)
-    }
 
     /// A clip of `frames` sets of `n` Gaussians: the first `still` never change, the others
     /// move smoothly in every attribute.

@@ -1,4 +1,5 @@
-//! `/health`: the process answers. `/ready`: the model has loaded and can serve.
+//! `/health`: the process answers. `/ready`: the model has loaded and can serve, and the server is
+//! not draining (503 `draining` from SIGTERM on, so a load balancer stops sending it requests).
 
 use axum::Json;
 use axum::extract::State;
@@ -11,6 +12,9 @@ pub async fn health() -> Json<Value> {
 }
 
 pub async fn ready(State(state): State<AppState>) -> Result<Json<Value>, ServiceError> {
+    if state.is_draining() {
+        return Err(ServiceError::Draining);
+    }
     let service = state.service()?;
     Ok(Json(
         json!({ "status": "ready", "model": service.engine.manifest().name }),

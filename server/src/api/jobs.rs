@@ -82,7 +82,11 @@ pub async fn events(
     JobId(id): JobId,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ServiceError> {
     let mut updates = state.service()?.jobs.subscribe(&id)?;
+    let drained = state.drained();
+    // A draining server ends its event streams (the job goes on; a client follows it again, on
+    // another replica): they could otherwise hold the drain until its deadline.
     let stream = async_stream(move |tx| async move {
+        tokio::pin!(drained);
         loop {
             let record = updates.borrow_and_update().clone();
             let event = Event::default()
@@ -92,8 +96,13 @@ pub async fn events(
             if tx.send(Ok(event)).await.is_err() || record.state.is_terminal() {
                 return;
             }
-            if updates.changed().await.is_err() {
-                return;
+            tokio::select! {
+                changed = updates.changed() => {
+                    if changed.is_err() {
+                        return;
+                    }
+                }
+                () = &mut drained => return,
             }
         }
     });

@@ -58,6 +58,7 @@ from pathlib import Path
 
 import torch
 
+from ..export import readable_by_all
 from . import lora as lora_mod
 from . import onnx_graphs, reference, text
 from .configs import PRESETS, TINY, RefinerConfig, build_transformer, build_vae
