@@ -78,6 +78,12 @@ impl Service {
         let mut stream = self.stream(id, request).await?;
         let limit = self.limits.max_export_bytes;
         let total = stream.times.len();
+        if format != ExportFormat::Splatv && total > frames_zip::MAX_FRAMES {
+            return Err(ServiceError::TooLarge(format!(
+                "{total} frames in one zip; at most {}: use a larger step",
+                frames_zip::MAX_FRAMES
+            )));
+        }
         match format {
             ExportFormat::PlyZip | ExportFormat::SpzZip => {
                 let frame = match format {

@@ -57,7 +57,7 @@ STATED_IN_WORDS = [
     (r"POST /v1/clips/\{id\}/render", 413, r"pixels in all"),
     (r"POST /v1/clips/\{id\}/(gaussians|render)", 400, r"make \d+ keyframes"),
     (r"POST /v1/clips/\{id\}/(stream|export)", 400, r"outside the clip's context span|is after end|make \d+ keyframes"),
-    (r"POST /v1/clips/\{id\}/(stream|export)", 413, r"sets in one stream|C4G_MAX_EXPORT_MIB"),
+    (r"POST /v1/clips/\{id\}/(stream|export)", 413, r"sets in one stream|C4G_MAX_EXPORT_MIB|frames in one zip"),
     (r"POST /v1/clips/\{id\}/refine", 400, r"a divisor of that|shape of text_embedding"),
     (r"GET /v1/jobs/\{id\}/result", 400, r"its result exists once it is done"),
     (r"POST /v1/clips", 415, r"."),

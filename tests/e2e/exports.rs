@@ -421,6 +421,11 @@ fn exports_refuse_what_they_cannot_make() {
             413,
             "sets in one stream",
         ),
+        (
+            json!({"format": "spz_zip", "fps": 5000}),
+            413,
+            "frames in one zip",
+        ),
         (json!({"format": "ply_zip"}), 413, "C4G_MAX_EXPORT_MIB"),
         (json!({"format": "splatv"}), 413, "C4G_MAX_EXPORT_MIB"),
     ] {

@@ -78,6 +78,10 @@ struct Index {
 /// A zip comment holds at most this many bytes (its length is a u16).
 const MAX_COMMENT: usize = u16::MAX as usize;
 
+/// Frames one archive holds at most: their times (JSON numbers of at most 24 characters and a
+/// comma) always fit in the comment.
+pub const MAX_FRAMES: usize = 2500;
+
 /// The entry name of frame `index`.
 pub fn entry_name(index: usize, format: FrameFormat) -> String {
     format!("frame_{index:06}.{}", format.extension())
@@ -118,6 +122,11 @@ impl Writer {
 
     /// Appends the set at `time` (seconds, after the previous one's).
     pub fn push(&mut self, time: f64, set: &GaussianSet) -> Result<(), RendererError> {
+        if self.times.len() >= MAX_FRAMES {
+            return Err(zip_error(format!(
+                "a frames zip holds at most {MAX_FRAMES} frames: export fewer times at once"
+            )));
+        }
         let last = self.times.last().copied().unwrap_or(f64::NEG_INFINITY);
         if !(time.is_finite() && time > last) {
             return Err(zip_error(format!(
