@@ -72,6 +72,11 @@ pub struct Config {
     /// serves them without encoding again.
     #[arg(long, env = "C4G_STORE_DIR", default_value = "c4g-data")]
     pub store_dir: PathBuf,
+    /// Object storage the replicas share clips through: `s3://bucket/prefix` (with the `AWS_*`
+    /// variables: endpoint, keys, region, `AWS_ALLOW_HTTP`) or `file:///shared/dir`. Unset: this
+    /// server's clips are its own.
+    #[arg(long, env = "C4G_SHARED_STORE")]
+    pub shared_store: Option<String>,
     /// Memory for cached encoder features, in MiB; the least recently used clips are evicted
     /// (they stay on disk and reload on their next request).
     #[arg(long, env = "C4G_CACHE_MIB", default_value_t = 1024)]

@@ -261,7 +261,11 @@ impl C4g for Grpc {
     }
 
     async fn get_clip(&self, request: Request<pb::ClipRef>) -> Result<Response<pb::Clip>, Status> {
-        let record = self.service()?.store.get(&request.into_inner().clip_id)?;
+        let record = self
+            .service()?
+            .store
+            .get_or_fetch(&request.into_inner().clip_id)
+            .await?;
         Ok(Response::new(clip_proto(&record, false)))
     }
 
@@ -279,7 +283,9 @@ impl C4g for Grpc {
         &self,
         request: Request<pb::ClipRef>,
     ) -> Result<Response<pb::DeleteClipResponse>, Status> {
-        self.service()?.delete(&request.into_inner().clip_id)?;
+        self.service()?
+            .delete(&request.into_inner().clip_id)
+            .await?;
         Ok(Response::new(pb::DeleteClipResponse {}))
     }
 
@@ -435,7 +441,7 @@ impl C4g for Grpc {
             height: nonzero(request.height),
             background: background(&request.background)?,
         };
-        let record = service.store.get(&request.clip_id)?;
+        let record = service.store.get_or_fetch(&request.clip_id).await?;
         let frames = service.plan_path(&record, &path)?;
         let times: Vec<f64> = frames.iter().map(|(t, _)| *t).collect();
         let quality = quality_spec(

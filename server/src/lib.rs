@@ -5,6 +5,7 @@
 //! | [`config`] | every setting, as a CLI flag with a `C4G_*` environment variable, and the limits |
 //! | [`intake`] | untrusted uploads (videos via FFmpeg, image archives) to timed context frames |
 //! | [`store`] | the clip store: content-addressed clips on disk, features in an LRU cache |
+//! | `shared_clips` | clips shared by replicas through object storage (`C4G_SHARED_STORE`): publish, fetch, one encode cluster-wide |
 //! | [`service`] | upload, decode, render: what both transports call |
 //! | `work` | work slots: decodes and renders on blocking threads, bounded, queued, cancellable |
 //! | [`jobs`] | refinement jobs: durable records, the queue, worker leases |
@@ -56,6 +57,7 @@ mod refine;
 mod renderer;
 pub mod service;
 mod service_error;
+mod shared_clips;
 mod state;
 pub mod store;
 mod streaming;

@@ -212,7 +212,7 @@ pub async fn build_job(
             record.id
         ))
     })?;
-    let clip = service.store.get(&record.clip_id)?;
+    let clip = service.store.get_or_fetch(&record.clip_id).await?;
     let frames = frames as usize;
     let available = clip.context_times.len();
     let context = request.context_frames.unwrap_or(available).min(available);
@@ -233,7 +233,7 @@ pub async fn build_job(
     for &k in &chosen {
         video.push(pb::VideoFrame {
             time: clip.context_times[k],
-            png: service.context_frame_png(&clip.id, k)?,
+            png: service.context_frame_png(&clip.id, k).await?,
         });
     }
     let mut path = request.path(frames - context);

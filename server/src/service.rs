@@ -24,6 +24,7 @@ use crate::jobs::JobStore;
 use crate::pruning::Analyses;
 use crate::quality::{self, Approximation, QualitySpec};
 use crate::renderer::Renderer;
+use crate::shared_clips::SharedClips;
 use crate::store::{ClipRecord, ClipStore, NewClip, now};
 use crate::work::WorkSlots;
 
@@ -96,12 +97,17 @@ impl Service {
     pub fn new(engine: Engine, config: &Config) -> Result<Self, String> {
         let model_key = model_key(&engine).map_err(|e| format!("cannot hash the model: {e}"))?;
         let limits = config.limits();
-        let store = ClipStore::open(
+        let mut store = ClipStore::open(
             &config.store_dir,
             &model_key,
             config.cache_mib.saturating_mul(1 << 20),
         )
         .map_err(|e| e.to_string())?;
+        if let Some(url) = &config.shared_store {
+            let shared = SharedClips::open(url, &model_key).map_err(|e| e.to_string())?;
+            // Another replica's encode takes what an encode here would: the intake's time limit.
+            store = store.with_shared(shared, limits.intake_timeout.saturating_mul(2));
+        }
         let jobs = JobStore::open(
             &config.store_dir.join(&model_key).join("jobs"),
             std::time::Duration::from_secs_f64(config.job_lease_s.max(0.1)),
@@ -267,7 +273,7 @@ impl Service {
         times: Vec<f64>,
         quality: QualitySpec,
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
-        let record = self.store.get(id)?;
+        let record = self.store.get_or_fetch(id).await?;
         self.check_times(&record, &times)?;
         let approximation = self.approximation(&record, &quality, &times)?;
         let encoding = self.store.encoding(id).await?;
@@ -418,7 +424,7 @@ impl Service {
         view: ViewRequest,
         quality: QualitySpec,
     ) -> Result<Image, ServiceError> {
-        let record = self.store.get(id)?;
+        let record = self.store.get_or_fetch(id).await?;
         self.check_times(&record, &[view.t])?;
         let (w, h) = self.image_size(view.width, view.height)?;
         let camera = view.camera.camera(w, h)?;
@@ -529,15 +535,15 @@ impl Service {
     }
 
     /// Deletes clip `id`: its record, features and frames, and what pruning measured of it.
-    pub fn delete(&self, id: &str) -> Result<(), ServiceError> {
-        self.store.delete(id)?;
+    pub async fn delete(&self, id: &str) -> Result<(), ServiceError> {
+        self.store.delete(id).await?;
         self.analyses.forget(id);
         Ok(())
     }
 
     /// The clip's context frame `index` (upload order) as PNG bytes.
-    pub fn context_frame_png(&self, id: &str, index: usize) -> Result<Vec<u8>, ServiceError> {
-        let record = self.store.get(id)?;
+    pub async fn context_frame_png(&self, id: &str, index: usize) -> Result<Vec<u8>, ServiceError> {
+        let record = self.store.get_or_fetch(id).await?;
         if index >= record.context_times.len() {
             return Err(ServiceError::NotFound(format!(
                 "clip {id} has {} context frames (0..{})",

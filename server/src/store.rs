@@ -18,6 +18,11 @@
 //!
 //! Clips are kept per model (the model key hashes the package), so a server on another model
 //! never decodes features it did not make.
+//!
+//! With a shared store ([`crate::shared_clips`], `C4G_SHARED_STORE`) this store is the replica's
+//! cache of the cluster's clips: what it stores it publishes, what it lacks it fetches
+//! ([`get_or_fetch`](ClipStore::get_or_fetch)), and an upload another replica is encoding is
+//! waited for and fetched rather than encoded again.
 
 use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
@@ -36,6 +41,7 @@ use tokio::sync::OnceCell;
 use crate::ServiceError;
 use crate::faults;
 use crate::intake::{IntakeOptions, SourceInfo};
+use crate::shared_clips::{Claim, SharedClips};
 
 /// What the store knows about a clip without its features.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -103,6 +109,8 @@ pub struct ClipStore {
     // Shared with the blocking task that writes a clip, which indexes it when the write is done
     // whether or not its caller is still waiting.
     state: Arc<Mutex<State>>,
+    /// The cluster's clips, and how long to wait for another replica's encode.
+    shared: Option<(SharedClips, std::time::Duration)>,
 }
 
 struct State {
@@ -158,7 +166,68 @@ impl ClipStore {
                 cached_bytes: 0,
                 inflight: HashMap::new(),
             })),
+            shared: None,
         })
+    }
+
+    /// Shares the store's clips with other replicas through `shared`; an upload another replica
+    /// is encoding is waited for up to `encode_wait` (then encoded here after all).
+    pub fn with_shared(mut self, shared: SharedClips, encode_wait: std::time::Duration) -> Self {
+        tracing::info!(url = shared.url(), "clips are shared with other replicas");
+        self.shared = Some((shared, encode_wait));
+        self
+    }
+
+    /// One clip's record, fetched from the shared store when this replica does not hold it.
+    pub async fn get_or_fetch(&self, id: &str) -> Result<Arc<ClipRecord>, ServiceError> {
+        match self.get(id) {
+            Err(missing) => match self.fetch(id).await? {
+                Some(record) => Ok(record),
+                None => Err(missing),
+            },
+            found => found,
+        }
+    }
+
+    /// Fetches clip `id` from the shared store into this one; `None` without a shared store or
+    /// when it has no such clip.
+    async fn fetch(&self, id: &str) -> Result<Option<Arc<ClipRecord>>, ServiceError> {
+        let Some((shared, _)) = &self.shared else {
+            return Ok(None);
+        };
+        // Ids name directories and objects: only content addresses are looked for.
+        if !(id.len() == 24 && id.bytes().all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f'))) {
+            return Ok(None);
+        }
+        let tmp = self.dir.join(format!(".tmp-{id}-{}", nonce()));
+        let fetched = shared.fetch(id, &tmp).await;
+        if !matches!(fetched, Ok(Some(_))) {
+            let _ = std::fs::remove_dir_all(&tmp);
+            return fetched.map(|_| None);
+        }
+        let (dir, state, name) = (self.dir.clone(), self.state.clone(), id.to_owned());
+        tokio::task::spawn_blocking(move || {
+            let record = check_clip(&tmp, &name).map_err(|why| {
+                let _ = std::fs::remove_dir_all(&tmp);
+                ServiceError::Internal(format!("the shared clip {name} cannot be served: {why}"))
+            })?;
+            let target = dir.join(&name);
+            if target.exists() {
+                let _ = std::fs::remove_dir_all(&tmp);
+            } else {
+                std::fs::rename(&tmp, &target)
+                    .and_then(|()| sync_dir(&dir))
+                    .map_err(|e| store_error(&record, "moving a fetched clip into place", &e))?;
+            }
+            let record = Arc::new(record);
+            let mut state = lock(&state);
+            let record = state.records.entry(name).or_insert(record).clone();
+            metrics::gauge!("c4g_clips").set(state.records.len() as f64);
+            tracing::info!(clip = %record.id, "clip fetched from the shared store");
+            Ok(Some(record))
+        })
+        .await
+        .map_err(|e| ServiceError::Internal(format!("fetching a clip panicked: {e}")))?
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {
@@ -211,11 +280,45 @@ impl ClipStore {
         let mut created = false;
         let result = cell
             .get_or_try_init(|| async {
-                let new = create().await?;
-                let record = Arc::new(new.record.clone());
-                self.persist(new).await?;
-                created = true;
-                Ok::<_, ServiceError>(record)
+                // Another replica may have it, or be encoding it.
+                let mut claimed = false;
+                if let Some((shared, encode_wait)) = &self.shared {
+                    if let Some(record) = self.fetch(id).await? {
+                        return Ok(record);
+                    }
+                    match shared.claim(id).await? {
+                        Claim::Ours => claimed = true,
+                        Claim::Theirs => {
+                            tracing::info!(
+                                clip = id,
+                                "another replica is encoding this clip: waiting"
+                            );
+                            if shared.wait_for(id, *encode_wait).await?
+                                && let Some(record) = self.fetch(id).await?
+                            {
+                                return Ok(record);
+                            }
+                        }
+                    }
+                }
+                let made = async {
+                    let new = create().await?;
+                    let record = Arc::new(new.record.clone());
+                    self.persist(new).await?;
+                    if let Some((shared, _)) = &self.shared
+                        && let Err(e) = shared.publish(&record, &self.dir.join(id)).await
+                    {
+                        // Stored here all the same: other replicas encode it themselves.
+                        tracing::warn!(clip = id, "cannot publish the clip: {e}");
+                    }
+                    Ok::<_, ServiceError>(record)
+                }
+                .await;
+                if claimed && let Some((shared, _)) = &self.shared {
+                    shared.release(id).await;
+                }
+                created = made.is_ok();
+                made
             })
             .await
             .cloned();
@@ -278,8 +381,12 @@ impl ClipStore {
             .join(format!("{index:03}.png"))
     }
 
-    /// Deletes a clip from memory and disk.
-    pub fn delete(&self, id: &str) -> Result<(), ServiceError> {
+    /// Deletes a clip from memory and disk, and from the shared store.
+    pub async fn delete(&self, id: &str) -> Result<(), ServiceError> {
+        let record = self.get_or_fetch(id).await?;
+        if let Some((shared, _)) = &self.shared {
+            shared.delete(id, &record).await?;
+        }
         {
             let mut state = self.lock();
             if state.records.remove(id).is_none() {

@@ -97,7 +97,7 @@ impl Service {
         id: &str,
         request: &StreamRequest,
     ) -> Result<SetStream, ServiceError> {
-        let record = self.store.get(id)?;
+        let record = self.store.get_or_fetch(id).await?;
         let (first, last) = record.span();
         let (start, end) = (request.start.unwrap_or(first), request.end.unwrap_or(last));
         for (name, value) in [

@@ -233,7 +233,7 @@ pub async fn get(
     State(state): State<AppState>,
     ClipId(id): ClipId,
 ) -> Result<Json<Value>, ServiceError> {
-    let record = state.service()?.store.get(&id)?;
+    let record = state.service()?.store.get_or_fetch(&id).await?;
     Ok(Json(clip_json(&record, None)))
 }
 
@@ -241,7 +241,7 @@ pub async fn delete(
     State(state): State<AppState>,
     ClipId(id): ClipId,
 ) -> Result<StatusCode, ServiceError> {
-    state.service()?.delete(&id)?;
+    state.service()?.delete(&id).await?;
     Ok(StatusCode::NO_CONTENT)
 }
 
@@ -250,7 +250,7 @@ pub async fn frame(
     ClipId(id): ClipId,
     FrameIndex(index): FrameIndex,
 ) -> Result<Response, ServiceError> {
-    let png = state.service()?.context_frame_png(&id, index)?;
+    let png = state.service()?.context_frame_png(&id, index).await?;
     Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response())
 }
 

@@ -27,6 +27,8 @@ pub async fn submit(
     json::check_body(&body, service.limits.max_times)?;
     let request: RefineRequest = json::typed(body)?;
     check(&request, service.limits.max_context_frames)?;
+    // Held here (fetched from the shared store when another replica has it) before it is checked.
+    service.store.get_or_fetch(&clip_id).await?;
     request.validate(service, &clip_id)?;
     let stored = serde_json::to_value(&request)
         .map_err(|e| ServiceError::Internal(format!("cannot store the request: {e}")))?;

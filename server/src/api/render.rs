@@ -73,7 +73,7 @@ pub async fn render(
             ));
         }
         let format = request.format.unwrap_or(ImageFormat::Png);
-        let record = service.store.get(&id)?;
+        let record = service.store.get_or_fetch(&id).await?;
         let view = ViewRequest {
             t: request.t.unwrap_or(record.span().0),
             camera: request.camera,
@@ -129,7 +129,7 @@ pub async fn render(
         height: request.height,
         background: request.background,
     };
-    let record = service.store.get(&id)?;
+    let record = service.store.get_or_fetch(&id).await?;
     let plan = service.plan_path(&record, &path)?;
     let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
     let approximation = service.approximation(&record, &quality, &times)?;
