@@ -7,7 +7,10 @@
 //! Checked: a clip uploaded to one replica is served by the other (fetched, decoded to the same
 //! bytes); an upload of a clip another replica already has is not encoded again; two replicas
 //! given the same new clip at once encode it once between them (the encode claim); a delete
-//! removes the clip from the shared store, so a replica that never held it answers 404.
+//! removes the clip from the shared store, so a replica that never held it answers 404. And the
+//! deployment as a whole, on one machine: nginx with `deploy/nginx/nginx.conf` (hashing on the
+//! clip id) in front of two replicas on the S3 bucket, one of them killed mid-traffic: every clip
+//! is still served, through the other, and no clip was encoded twice.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
@@ -97,10 +100,15 @@ fn moto_bucket() -> Option<(Moto, Shared)> {
 
 /// Uploads the synthetic clip with its times scaled by `scale` (another scale, another clip).
 fn upload(server: &ServerProcess, scale: f64) -> (u16, Value) {
+    upload_to(&server.url(), scale)
+}
+
+/// [`upload`] to the server at `base`.
+fn upload_to(base: &str, scale: f64) -> (u16, Value) {
     let (frames, times) = synthetic_clip();
     let times: Vec<f64> = times.iter().map(|t| t * scale).collect();
     let response = Client::new()
-        .post(server.at("/v1/clips"))
+        .post(format!("{base}/v1/clips"))
         .multipart(frames_form(&frames, &times))
         .send()
         .unwrap();
@@ -210,4 +218,138 @@ fn share_and_check(shared: &Shared) {
     // The other clip is still everyone's.
     let other = both_a.1["id"].as_str().unwrap();
     assert_eq!(decode(&c, other).0, 200);
+}
+
+/// nginx with deploy/nginx/nginx.conf, its upstreams and listening port replaced; killed when
+/// dropped.
+struct Proxy {
+    child: Child,
+    port: u16,
+    _dir: tempfile::TempDir,
+}
+
+impl Drop for Proxy {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn proxy(upstreams: [std::net::SocketAddr; 2]) -> Option<Proxy> {
+    if Command::new("nginx").arg("-v").output().is_err() {
+        return missing("nginx must be installed (scripts/setup: nginx-light)");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let config = std::fs::read_to_string(c4g_e2e::workspace().join("deploy/nginx/nginx.conf"))
+        .unwrap()
+        .replace("127.0.0.1:8081", &upstreams[0].to_string())
+        .replace("127.0.0.1:8082", &upstreams[1].to_string())
+        .replace("listen 127.0.0.1:8080", &format!("listen 127.0.0.1:{port}"));
+    let path = dir.path().join("nginx.conf");
+    std::fs::write(&path, config).unwrap();
+    let child = Command::new("nginx")
+        .arg("-p")
+        .arg(dir.path())
+        .arg("-c")
+        .arg(&path)
+        // One process (no workers to orphan when the test kills it), in the foreground.
+        .args(["-g", "daemon off; master_process off;"])
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(Instant::now() < deadline, "nginx did not start");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    Some(Proxy {
+        child,
+        port,
+        _dir: dir,
+    })
+}
+
+/// A decode through the proxy; its status (0: no answer).
+fn decode_via(port: u16, id: &str) -> u16 {
+    Client::new()
+        .post(format!("http://127.0.0.1:{port}/v1/clips/{id}/gaussians"))
+        .json(&json!({"t": 0.3, "format": "binary"}))
+        .timeout(Duration::from_secs(60))
+        .send()
+        .map_or(0, |r| r.status().as_u16())
+}
+
+#[test]
+fn behind_the_hashing_proxy_a_replica_killed_mid_traffic_loses_no_clip() {
+    if !ort_available() {
+        return;
+    }
+    let Some((_moto, shared)) = moto_bucket() else {
+        return;
+    };
+    let (store_a, store_b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let a = replica(store_a.path(), &shared);
+    let b = replica(store_b.path(), &shared);
+    let Some(proxy) = proxy([a.addr, b.addr]) else {
+        return;
+    };
+    let base = format!("http://127.0.0.1:{}", proxy.port);
+    let mut ids = Vec::new();
+    for scale in [1.0, 2.0, 3.0, 4.0] {
+        let (status, clip) = upload_to(&base, scale);
+        assert_eq!(status, 201, "{clip}");
+        ids.push(clip["id"].as_str().unwrap().to_owned());
+    }
+    for id in &ids {
+        assert_eq!(decode_via(proxy.port, id), 200, "{id}");
+    }
+    let encoded = encodes(&a) + encodes(&b);
+    assert_eq!(encoded, ids.len() as f64, "a clip was encoded twice");
+    // Uploads hash on their one path, so one replica encoded them all: that one is killed.
+    let (victim, survivor) = if encodes(&a) > 0.0 { (a, b) } else { (b, a) };
+    let survivor_encodes = encodes(&survivor);
+
+    // Traffic on every clip while the victim is killed: answers may fail only while nginx
+    // finds it gone (requests it had in flight).
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    let (failed_during, after) = std::thread::scope(|s| {
+        let traffic = s.spawn(|| {
+            let mut failed = 0;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                for id in &ids {
+                    if decode_via(proxy.port, id) != 200 {
+                        failed += 1;
+                    }
+                }
+            }
+            failed
+        });
+        std::thread::sleep(Duration::from_millis(500));
+        victim.kill();
+        std::thread::sleep(Duration::from_millis(1500));
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        let failed = traffic.join().unwrap();
+        let after: Vec<u16> = ids.iter().map(|id| decode_via(proxy.port, id)).collect();
+        (failed, after)
+    });
+    assert!(after.iter().all(|&s| s == 200), "after the kill: {after:?}");
+    assert_eq!(
+        encodes(&survivor),
+        survivor_encodes,
+        "the survivor encoded a clip the killed replica had published"
+    );
+    eprintln!(
+        "cluster: {} clips, {encoded} encodes in all; {failed_during} answers failed while a \
+         replica was killed; every clip served by the other afterwards",
+        ids.len()
+    );
 }
