@@ -14,9 +14,9 @@
 
 use std::sync::Arc;
 
-use c4g_renderer::GaussianSet;
 use c4g_renderer::formats::frames_zip::{self, FrameFormat};
 use c4g_renderer::formats::splatv;
+use c4g_renderer::{CANONICAL_CHANNELS, GaussianSet};
 
 use crate::ServiceError;
 use crate::service::Service;
@@ -144,10 +144,9 @@ impl Service {
     }
 }
 
-/// Bytes a set holds in memory (its columns; features are not exported).
+/// Bytes a set holds in memory (its f32 columns; features are not exported).
 fn set_bytes(set: &GaussianSet) -> u64 {
-    // position 3, scale 3, rotation 4, opacity 1, colour 3: f32 each.
-    set.len() as u64 * 14 * 4
+    (set.len() * CANONICAL_CHANNELS * 4) as u64
 }
 
 fn over_limit(what: &str, limit: u64, done: usize, total: usize) -> ServiceError {

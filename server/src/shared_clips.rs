@@ -192,8 +192,14 @@ impl SharedClips {
         }
     }
 
-    /// Deletes clip `id` from the shared store (whatever of it is there).
-    pub async fn delete(&self, id: &str, record: &ClipRecord) -> Result<(), ServiceError> {
+    /// Deletes clip `id` from the shared store; whether it was there.
+    pub async fn delete(&self, id: &str) -> Result<bool, ServiceError> {
+        let Some(json) = self.get(id, "clip.json").await? else {
+            return Ok(false);
+        };
+        let record: ClipRecord = serde_json::from_slice(&json).map_err(|e| {
+            ServiceError::Internal(format!("the shared record of clip {id} is damaged: {e}"))
+        })?;
         // The record first: from then on no replica fetches it.
         let mut names = vec!["clip.json".to_owned(), "features.f32".to_owned()];
         names.extend((0..record.context_times.len()).map(frame_name));
@@ -203,7 +209,7 @@ impl SharedClips {
                 Err(e) => return Err(shared_error(id, "deleting", &e)),
             }
         }
-        Ok(())
+        Ok(true)
     }
 }
 

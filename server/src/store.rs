@@ -195,8 +195,7 @@ impl ClipStore {
         let Some((shared, _)) = &self.shared else {
             return Ok(None);
         };
-        // Ids name directories and objects: only content addresses are looked for.
-        if !(id.len() == 24 && id.bytes().all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f'))) {
+        if !is_clip_id(id) {
             return Ok(None);
         }
         let tmp = self.dir.join(format!(".tmp-{id}-{}", nonce()));
@@ -383,14 +382,15 @@ impl ClipStore {
 
     /// Deletes a clip from memory and disk, and from the shared store.
     pub async fn delete(&self, id: &str) -> Result<(), ServiceError> {
-        let record = self.get_or_fetch(id).await?;
-        if let Some((shared, _)) = &self.shared {
-            shared.delete(id, &record).await?;
-        }
+        // From the shared store by its own record: a clip held only there is not fetched first.
+        let shared = match &self.shared {
+            Some((shared, _)) if is_clip_id(id) => shared.delete(id).await?,
+            _ => false,
+        };
         {
             let mut state = self.lock();
             if state.records.remove(id).is_none() {
-                return Err(not_found(id));
+                return if shared { Ok(()) } else { Err(not_found(id)) };
             }
             if let Some(old) = state.cache.pop(id) {
                 state.cached_bytes -= (old.features().len() * 4) as u64;
@@ -448,6 +448,12 @@ impl Drop for Inflight<'_> {
         }
         metrics::gauge!("c4g_clips_in_progress").set(state.inflight.len() as f64);
     }
+}
+
+/// Whether `id` is a content address: ids name directories and shared objects, so nothing else
+/// is looked for there.
+fn is_clip_id(id: &str) -> bool {
+    id.len() == 24 && id.bytes().all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f'))
 }
 
 fn not_found(id: &str) -> ServiceError {
