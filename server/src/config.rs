@@ -164,6 +164,12 @@ pub struct Config {
     /// back (retried, or failed when out of attempts).
     #[arg(long, env = "C4G_JOB_LEASE_S", default_value_t = 60.0)]
     pub job_lease_s: f64,
+    /// Where refinement jobs are kept: unset, this server's store directory; a PostgreSQL URL
+    /// (`postgres://user:password@host/db`, or `?host=/run/postgresql` for a Unix socket), a
+    /// database every replica shares: any replica hands jobs to workers and serves their
+    /// results (`server/src/jobs/postgres.rs`).
+    #[arg(long, env = "C4G_JOB_DATABASE", hide_env_values = true)]
+    pub job_database: Option<Secret>,
     /// Attempts a refinement job gets (a lost worker or a retryable failure uses one).
     #[arg(long, env = "C4G_JOB_ATTEMPTS", default_value_t = 2)]
     pub job_attempts: u32,

@@ -18,7 +18,9 @@ pub const GRPC_KIND_KEY: &str = "c4g-error-kind";
 pub fn http_status(kind: ServiceErrorKind) -> StatusCode {
     use ServiceErrorKind as K;
     match kind {
-        K::NotReady | K::Draining | K::Overloaded => StatusCode::SERVICE_UNAVAILABLE,
+        K::NotReady | K::Draining | K::Overloaded | K::Unavailable => {
+            StatusCode::SERVICE_UNAVAILABLE
+        }
         K::InvalidInput => StatusCode::BAD_REQUEST,
         K::Unauthorized => StatusCode::UNAUTHORIZED,
         K::NotFound => StatusCode::NOT_FOUND,
@@ -36,7 +38,7 @@ pub fn http_status(kind: ServiceErrorKind) -> StatusCode {
 pub fn grpc_code(kind: ServiceErrorKind) -> Code {
     use ServiceErrorKind as K;
     match kind {
-        K::NotReady | K::Draining | K::Overloaded => Code::Unavailable,
+        K::NotReady | K::Draining | K::Overloaded | K::Unavailable => Code::Unavailable,
         K::InvalidInput | K::UnsupportedMedia | K::UnreadableMedia | K::Unsupported => {
             Code::InvalidArgument
         }
@@ -53,6 +55,9 @@ pub fn grpc_code(kind: ServiceErrorKind) -> Code {
 fn log(error: &ServiceError, kind: ServiceErrorKind) {
     match kind {
         ServiceErrorKind::Internal => tracing::error!(error = %error, "request failed"),
+        ServiceErrorKind::Unavailable => {
+            tracing::error!(error = %error, "request failed: a service it needs is down")
+        }
         ServiceErrorKind::InsufficientStorage => {
             tracing::error!(error = %error, "request refused: the disk is full")
         }
@@ -105,7 +110,7 @@ mod tests {
     use super::*;
 
     /// Every kind, its name, HTTP status and gRPC code: the contract `docs/api.md` documents.
-    const TABLE: [(ServiceErrorKind, &str, u16, Code); 14] = [
+    const TABLE: [(ServiceErrorKind, &str, u16, Code); 15] = [
         (
             ServiceErrorKind::NotReady,
             "not_ready",
@@ -174,6 +179,12 @@ mod tests {
             408,
             Code::DeadlineExceeded,
         ),
+        (
+            ServiceErrorKind::Unavailable,
+            "unavailable",
+            503,
+            Code::Unavailable,
+        ),
         (ServiceErrorKind::Internal, "internal", 500, Code::Internal),
     ];
 
@@ -208,7 +219,8 @@ mod tests {
                 ServiceErrorKind::Overloaded => 10,
                 ServiceErrorKind::InsufficientStorage => 11,
                 ServiceErrorKind::TimedOut => 12,
-                ServiceErrorKind::Internal => 13,
+                ServiceErrorKind::Unavailable => 13,
+                ServiceErrorKind::Internal => 14,
             };
             assert_eq!(ServiceErrorKind::ALL[position], kind);
         }

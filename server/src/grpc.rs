@@ -273,7 +273,7 @@ impl C4g for Grpc {
         &self,
         _: Request<pb::ListClipsRequest>,
     ) -> Result<Response<pb::ListClipsResponse>, Status> {
-        let clips = self.service()?.store.list();
+        let clips = self.service()?.store.list_all().await?;
         Ok(Response::new(pb::ListClipsResponse {
             clips: clips.iter().map(|r| clip_proto(r, false)).collect(),
         }))

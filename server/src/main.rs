@@ -113,14 +113,31 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
     // with the reason: a server that can never be ready helps nobody, and an orchestrator sees
     // the failed start. Until then /health answers and /ready says 503 not_ready.
     loading.await??;
-    // Jobs whose worker went quiet go back to the queue (or fail) within a second of their lease.
+    // Jobs whose worker went quiet go back to the queue (or fail) within a second of their
+    // lease; the queue's depth is counted anew (for a shared store, the cluster's: what a worker
+    // autoscaler reads).
     if let Ok(service) = state.service() {
         let service = service.clone();
         tokio::spawn(async move {
             let mut tick = tokio::time::interval(std::time::Duration::from_millis(500));
+            let mut failing = false;
             loop {
                 tick.tick().await;
-                service.jobs.reap();
+                // Said once when it starts failing and once when it recovers, not twice a second.
+                match service.jobs.reap().await {
+                    Err(e) if !failing => {
+                        tracing::warn!("cannot look for lost jobs: {e}");
+                        failing = true;
+                    }
+                    Ok(_) if failing => {
+                        tracing::info!("looking for lost jobs again");
+                        failing = false;
+                    }
+                    _ => {}
+                }
+                if let Ok(queued) = service.jobs.queued().await {
+                    metrics::gauge!("c4g_jobs_queued").set(queued as f64);
+                }
             }
         });
     }

@@ -20,7 +20,7 @@ use crate::ServiceError;
 use crate::camera::CameraSpec;
 use crate::config::{Config, Limits};
 use crate::intake::{self, IntakeOptions, IntakeTools, Media};
-use crate::jobs::JobStore;
+use crate::jobs::{self, JobQueue};
 use crate::pruning::Analyses;
 use crate::quality::{self, Approximation, QualitySpec};
 use crate::renderer::Renderer;
@@ -43,8 +43,11 @@ pub struct Service {
     pub limits: Limits,
     /// FFmpeg and scratch space.
     pub tools: IntakeTools,
-    /// Refinement jobs.
-    pub jobs: JobStore,
+    /// Refinement jobs: on this replica's disk, or in the database replicas share.
+    pub jobs: Arc<dyn JobQueue>,
+    /// Where refined videos are kept once made from a job's frames (derived: any replica can
+    /// make them again).
+    pub job_videos: std::path::PathBuf,
     model_key: String,
     encode_slots: Arc<Semaphore>,
     work: WorkSlots,
@@ -108,8 +111,10 @@ impl Service {
             // Another replica's encode takes what an encode here would: the intake's time limit.
             store = store.with_shared(shared, limits.intake_timeout.saturating_mul(2));
         }
-        let jobs = JobStore::open(
+        let jobs = jobs::open(
+            config.job_database.as_ref().map(|url| url.expose()),
             &config.store_dir.join(&model_key).join("jobs"),
+            &model_key,
             std::time::Duration::from_secs_f64(config.job_lease_s.max(0.1)),
             config.job_attempts,
         )
@@ -131,6 +136,7 @@ impl Service {
             tools: IntakeTools::new(config.ffmpeg.clone(), config.store_dir.join("scratch")),
             limits,
             jobs,
+            job_videos: config.store_dir.join(&model_key).join("job-videos"),
             model_key,
             encode_slots: Arc::new(Semaphore::new(config.max_concurrent_encodes.max(1))),
             work,

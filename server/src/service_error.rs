@@ -56,6 +56,10 @@ pub enum ServiceError {
     /// The client took longer than a limit allows (a request body that did not arrive in time).
     #[error("{0}")]
     TimedOut(String),
+    /// A service the server depends on (the job database) failed or cannot be reached: nothing
+    /// was changed, and the request may succeed when it is back.
+    #[error("{0}")]
+    Unavailable(String),
     /// The server failed; the message is logged and shown.
     #[error("internal error: {0}")]
     Internal(String),
@@ -97,13 +101,15 @@ pub enum ServiceErrorKind {
     InsufficientStorage,
     /// The client was too slow (a request body that did not arrive in time).
     TimedOut,
+    /// A service the server depends on is down: retry later; the operator restores it.
+    Unavailable,
     /// The server (or its model package) failed: the operator fixes it.
     Internal,
 }
 
 impl ServiceErrorKind {
     /// Every kind, for tables and tests.
-    pub const ALL: [Self; 14] = [
+    pub const ALL: [Self; 15] = [
         Self::NotReady,
         Self::Draining,
         Self::InvalidInput,
@@ -117,6 +123,7 @@ impl ServiceErrorKind {
         Self::Overloaded,
         Self::InsufficientStorage,
         Self::TimedOut,
+        Self::Unavailable,
         Self::Internal,
     ];
 
@@ -136,6 +143,7 @@ impl ServiceErrorKind {
             Self::Overloaded => "overloaded",
             Self::InsufficientStorage => "insufficient_storage",
             Self::TimedOut => "timed_out",
+            Self::Unavailable => "unavailable",
             Self::Internal => "internal",
         }
     }
@@ -180,6 +188,7 @@ impl ServiceError {
             Self::Overloaded { .. } => K::Overloaded,
             Self::InsufficientStorage(_) => K::InsufficientStorage,
             Self::TimedOut(_) => K::TimedOut,
+            Self::Unavailable(_) => K::Unavailable,
             Self::Internal(_) => K::Internal,
             Self::Engine(e) => engine_kind(e.kind()),
             Self::Renderer(e) => renderer_kind(e),
@@ -191,6 +200,7 @@ impl ServiceError {
         match self {
             Self::Busy { retry_after } | Self::Overloaded { retry_after } => Some(*retry_after),
             Self::NotReady | Self::Draining => Some(Duration::from_secs(1)),
+            Self::Unavailable(_) => Some(Duration::from_secs(5)),
             _ => None,
         }
     }

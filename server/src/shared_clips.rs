@@ -13,8 +13,13 @@
 //!   the record to appear and fetches the clip instead. A claim older than [`STALE_CLAIM`] (its
 //!   replica died mid-encode) is taken over.
 //!
-//! Not shared: the list of clips (`GET /v1/clips` lists what the replica answering holds) and
-//! deletes of clips another replica has fetched (they keep serving their copy until restarted).
+//! - **the list**: `GET /v1/clips` lists the cluster's clips (this replica's and the bucket's);
+//! - **deletes**: a delete removes the clip's objects, the record first; a replica that fetched
+//!   or published the clip looks for its record again before serving it once [`RECHECK`] has
+//!   passed since it last saw it, and forgets a clip that is gone.
+//!
+//! The shared store failing (down, refusing) is kind `unavailable` (503, retry): the request
+//! changed nothing.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -29,6 +34,14 @@ use crate::store::ClipRecord;
 
 /// A claim this old is its replica's, which died: another may encode the clip.
 pub const STALE_CLAIM: Duration = Duration::from_secs(600);
+
+/// A file in a clip's local directory saying the clip is in the shared store (fetched from it,
+/// or published to it): such a copy is checked against deletes; one never shared is not.
+pub const SHARED_MARK: &str = "shared";
+
+/// How long a replica serves a shared clip it holds before it checks the clip was not deleted
+/// (by another replica): the longest a deleted clip stays visible.
+pub const RECHECK: Duration = Duration::from_secs(5);
 
 /// How often a replica waiting for another's encode looks for the record.
 const POLL: Duration = Duration::from_millis(200);
@@ -109,6 +122,12 @@ impl SharedClips {
         let record: ClipRecord = serde_json::from_slice(&json).map_err(|e| {
             ServiceError::Internal(format!("the shared record of clip {id} is damaged: {e}"))
         })?;
+        // Marked as the cluster's: the copy is checked against deletes (RECHECK).
+        tokio::fs::create_dir_all(into)
+            .await
+            .map_err(|e| ServiceError::storage(format!("cannot fetch clip {id}"), &e))?;
+        crate::store::write_synced(&into.join(SHARED_MARK), b"")
+            .map_err(|e| ServiceError::storage(format!("cannot fetch clip {id}"), &e))?;
         tokio::fs::create_dir_all(into.join("frames"))
             .await
             .map_err(|e| ServiceError::storage(format!("cannot fetch clip {id}"), &e))?;
@@ -136,6 +155,42 @@ impl SharedClips {
             Err(object_store::Error::NotFound { .. }) => Ok(None),
             Err(e) => Err(shared_error(id, "fetching", &e)),
         }
+    }
+
+    /// The record of clip `id`, when the shared store has it whole.
+    pub async fn record(&self, id: &str) -> Result<Option<ClipRecord>, ServiceError> {
+        let Some(json) = self.get(id, "clip.json").await? else {
+            return Ok(None);
+        };
+        serde_json::from_slice(&json).map(Some).map_err(|e| {
+            ServiceError::Internal(format!("the shared record of clip {id} is damaged: {e}"))
+        })
+    }
+
+    /// Whether the shared store still has clip `id`'s record.
+    pub async fn has(&self, id: &str) -> Result<bool, ServiceError> {
+        match self.store.head(&self.path(id, "clip.json")).await {
+            Ok(_) => Ok(true),
+            Err(object_store::Error::NotFound { .. }) => Ok(false),
+            Err(e) => Err(shared_error(id, "looking for", &e)),
+        }
+    }
+
+    /// The ids under the model's prefix: whole clips, and some being written or deleted (their
+    /// records say which).
+    pub async fn ids(&self) -> Result<Vec<String>, ServiceError> {
+        let listed = self
+            .store
+            .list_with_delimiter(Some(&self.root))
+            .await
+            .map_err(|e| {
+                ServiceError::Unavailable(format!("the shared store cannot list its clips: {e}"))
+            })?;
+        Ok(listed
+            .common_prefixes
+            .iter()
+            .filter_map(|p| p.filename().map(str::to_owned))
+            .collect())
     }
 
     /// Claims the encode of clip `id` for this replica, unless another holds a live claim.
@@ -194,12 +249,9 @@ impl SharedClips {
 
     /// Deletes clip `id` from the shared store; whether it was there.
     pub async fn delete(&self, id: &str) -> Result<bool, ServiceError> {
-        let Some(json) = self.get(id, "clip.json").await? else {
+        let Some(record) = self.record(id).await? else {
             return Ok(false);
         };
-        let record: ClipRecord = serde_json::from_slice(&json).map_err(|e| {
-            ServiceError::Internal(format!("the shared record of clip {id} is damaged: {e}"))
-        })?;
         // The record first: from then on no replica fetches it.
         let mut names = vec!["clip.json".to_owned(), "features.f32".to_owned()];
         names.extend((0..record.context_times.len()).map(frame_name));
@@ -223,6 +275,10 @@ fn now_s() -> u64 {
         .map_or(0, |d| d.as_secs())
 }
 
+/// The shared store failed: a service the server depends on, so `unavailable` (retry), not the
+/// server's own failure.
 fn shared_error(id: &str, what: &str, e: &object_store::Error) -> ServiceError {
-    ServiceError::Internal(format!("the shared store failed {what} clip {id}: {e}"))
+    ServiceError::Unavailable(format!(
+        "the shared store (C4G_SHARED_STORE) failed {what} clip {id}: {e}"
+    ))
 }

@@ -29,7 +29,7 @@ use std::future::Future;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::{SystemTime, UNIX_EPOCH};
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use c4g_engine::Encoding;
 use image::RgbImage;
@@ -41,7 +41,7 @@ use tokio::sync::OnceCell;
 use crate::ServiceError;
 use crate::faults;
 use crate::intake::{IntakeOptions, SourceInfo};
-use crate::shared_clips::{Claim, SharedClips};
+use crate::shared_clips::{Claim, RECHECK, SHARED_MARK, SharedClips};
 
 /// What the store knows about a clip without its features.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -118,6 +118,8 @@ struct State {
     cache: LruCache<String, Arc<Encoding>>,
     cached_bytes: u64,
     inflight: HashMap<String, Arc<OnceCell<Arc<ClipRecord>>>>,
+    /// Clips held here that are in the shared store, and when they were last seen there.
+    shared_seen: HashMap<String, Instant>,
 }
 
 fn lock(state: &Mutex<State>) -> MutexGuard<'_, State> {
@@ -165,6 +167,7 @@ impl ClipStore {
                 cache: LruCache::unbounded(),
                 cached_bytes: 0,
                 inflight: HashMap::new(),
+                shared_seen: HashMap::new(),
             })),
             shared: None,
         })
@@ -175,18 +178,97 @@ impl ClipStore {
     pub fn with_shared(mut self, shared: SharedClips, encode_wait: std::time::Duration) -> Self {
         tracing::info!(url = shared.url(), "clips are shared with other replicas");
         self.shared = Some((shared, encode_wait));
+        // Shared copies kept from before a restart are checked against deletes at first use.
+        let long_ago = Instant::now()
+            .checked_sub(RECHECK)
+            .unwrap_or_else(Instant::now);
+        let mut state = self.lock();
+        let held: Vec<String> = state.records.keys().cloned().collect();
+        for id in held {
+            if self.dir.join(&id).join(SHARED_MARK).exists() {
+                state.shared_seen.insert(id, long_ago);
+            }
+        }
+        drop(state);
         self
     }
 
-    /// One clip's record, fetched from the shared store when this replica does not hold it.
+    /// One clip's record, fetched from the shared store when this replica does not hold it. A
+    /// shared clip held here is looked for in the shared store once [`RECHECK`] has passed since
+    /// it was last seen there, and forgotten when another replica deleted it.
     pub async fn get_or_fetch(&self, id: &str) -> Result<Arc<ClipRecord>, ServiceError> {
-        match self.get(id) {
-            Err(missing) => match self.fetch(id).await? {
-                Some(record) => Ok(record),
-                None => Err(missing),
-            },
-            found => found,
+        let found = match self.get(id) {
+            Err(missing) => {
+                return match self.fetch(id).await? {
+                    Some(record) => Ok(record),
+                    None => Err(missing),
+                };
+            }
+            Ok(found) => found,
+        };
+        let Some((shared, _)) = &self.shared else {
+            return Ok(found);
+        };
+        let due = self
+            .lock()
+            .shared_seen
+            .get(id)
+            .is_some_and(|seen| seen.elapsed() >= RECHECK);
+        if !due {
+            return Ok(found);
         }
+        match shared.has(id).await {
+            Ok(true) => {
+                self.lock()
+                    .shared_seen
+                    .insert(id.to_owned(), Instant::now());
+                Ok(found)
+            }
+            Ok(false) => {
+                tracing::info!(clip = id, "deleted by another replica: forgotten here too");
+                if let Err(e) = self.forget(id) {
+                    tracing::warn!(clip = id, "cannot remove the deleted clip's copy: {e}");
+                }
+                Err(not_found(id))
+            }
+            // The shared store is down: the copy here is still the clip.
+            Err(e) => {
+                tracing::warn!(clip = id, "cannot check the clip against deletes: {e}");
+                Ok(found)
+            }
+        }
+    }
+
+    /// Every clip: this replica's, and with a shared store the cluster's; oldest first.
+    pub async fn list_all(&self) -> Result<Vec<Arc<ClipRecord>>, ServiceError> {
+        use futures_util::StreamExt;
+        let mut all = self.list();
+        let Some((shared, _)) = &self.shared else {
+            return Ok(all);
+        };
+        let held: std::collections::HashSet<String> = all.iter().map(|r| r.id.clone()).collect();
+        let others: Vec<String> = shared
+            .ids()
+            .await?
+            .into_iter()
+            .filter(|id| is_clip_id(id) && !held.contains(id))
+            .collect();
+        // Records only (a few hundred bytes each), a few at a time.
+        let records: Vec<Result<Option<ClipRecord>, ServiceError>> = futures_util::stream::iter(
+            others
+                .into_iter()
+                .map(|id| async move { shared.record(&id).await }),
+        )
+        .buffer_unordered(16)
+        .collect()
+        .await;
+        for record in records {
+            if let Some(record) = record? {
+                all.push(Arc::new(record));
+            }
+        }
+        all.sort_by(|a, b| (a.created_at, &a.id).cmp(&(b.created_at, &b.id)));
+        Ok(all)
     }
 
     /// Fetches clip `id` from the shared store into this one; `None` without a shared store or
@@ -220,6 +302,7 @@ impl ClipStore {
             }
             let record = Arc::new(record);
             let mut state = lock(&state);
+            state.shared_seen.insert(name.clone(), Instant::now());
             let record = state.records.entry(name).or_insert(record).clone();
             metrics::gauge!("c4g_clips").set(state.records.len() as f64);
             tracing::info!(clip = %record.id, "clip fetched from the shared store");
@@ -304,11 +387,12 @@ impl ClipStore {
                     let new = create().await?;
                     let record = Arc::new(new.record.clone());
                     self.persist(new).await?;
-                    if let Some((shared, _)) = &self.shared
-                        && let Err(e) = shared.publish(&record, &self.dir.join(id)).await
-                    {
-                        // Stored here all the same: other replicas encode it themselves.
-                        tracing::warn!(clip = id, "cannot publish the clip: {e}");
+                    if let Some((shared, _)) = &self.shared {
+                        match shared.publish(&record, &self.dir.join(id)).await {
+                            Ok(()) => self.mark_shared(id).await,
+                            // Stored here all the same: other replicas encode it themselves.
+                            Err(e) => tracing::warn!(clip = id, "cannot publish the clip: {e}"),
+                        }
                     }
                     Ok::<_, ServiceError>(record)
                 }
@@ -380,6 +464,18 @@ impl ClipStore {
             .join(format!("{index:03}.png"))
     }
 
+    /// Records that clip `id`, held here, is in the shared store (so its copy is checked
+    /// against deletes, also after a restart).
+    async fn mark_shared(&self, id: &str) {
+        let mark = self.dir.join(id).join(SHARED_MARK);
+        if let Err(e) = tokio::fs::write(&mark, b"").await {
+            tracing::warn!(clip = id, "cannot mark the clip as shared: {e}");
+        }
+        self.lock()
+            .shared_seen
+            .insert(id.to_owned(), Instant::now());
+    }
+
     /// Deletes a clip from memory and disk, and from the shared store.
     pub async fn delete(&self, id: &str) -> Result<(), ServiceError> {
         // From the shared store by its own record: a clip held only there is not fetched first.
@@ -387,10 +483,20 @@ impl ClipStore {
             Some((shared, _)) if is_clip_id(id) => shared.delete(id).await?,
             _ => false,
         };
+        match self.forget(id)? {
+            true => Ok(()),
+            false if shared => Ok(()),
+            false => Err(not_found(id)),
+        }
+    }
+
+    /// Removes clip `id` from this replica's memory and disk; whether it held it.
+    fn forget(&self, id: &str) -> Result<bool, ServiceError> {
         {
             let mut state = self.lock();
+            state.shared_seen.remove(id);
             if state.records.remove(id).is_none() {
-                return if shared { Ok(()) } else { Err(not_found(id)) };
+                return Ok(false);
             }
             if let Some(old) = state.cache.pop(id) {
                 state.cached_bytes -= (old.features().len() * 4) as u64;
@@ -404,7 +510,8 @@ impl ClipStore {
         std::fs::rename(&path, &doomed)
             .and_then(|()| sync_dir(&self.dir))
             .and_then(|()| std::fs::remove_dir_all(&doomed))
-            .map_err(|e| ServiceError::storage(format!("cannot delete clip {id} from disk"), &e))
+            .map_err(|e| ServiceError::storage(format!("cannot delete clip {id} from disk"), &e))?;
+        Ok(true)
     }
 }
 

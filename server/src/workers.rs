@@ -81,20 +81,24 @@ impl Jobs for Workers {
                     // again later (an attempt spent here could fail a job for being busy).
                     service
                         .jobs
-                        .release(&record.id, &request.worker, &e.to_string())?;
+                        .release(&record.id, &request.worker, &e.to_string())
+                        .await?;
                     return Ok(Response::new(pb::TakeResponse { job: None }));
                 }
                 Err(e) => {
                     // Nothing a worker can do about a job it cannot be given: it fails, and the
                     // worker gets the next one.
                     let retryable = e.kind() == ServiceErrorKind::Internal;
-                    service.jobs.fail(
-                        &record.id,
-                        &request.worker,
-                        &e.to_string(),
-                        retryable,
-                        false,
-                    )?;
+                    service
+                        .jobs
+                        .fail(
+                            &record.id,
+                            &request.worker,
+                            &e.to_string(),
+                            retryable,
+                            false,
+                        )
+                        .await?;
                 }
             }
         }
@@ -105,15 +109,19 @@ impl Jobs for Workers {
         request: Request<pb::ProgressRequest>,
     ) -> Result<Response<pb::ProgressResponse>, Status> {
         let r = request.into_inner();
-        let cancelled = self.service()?.jobs.progress(
-            &r.job_id,
-            &r.worker,
-            Progress {
-                step: r.step,
-                steps: r.steps,
-                stage: r.stage,
-            },
-        )?;
+        let cancelled = self
+            .service()?
+            .jobs
+            .progress(
+                &r.job_id,
+                &r.worker,
+                Progress {
+                    step: r.step,
+                    steps: r.steps,
+                    stage: r.stage,
+                },
+            )
+            .await?;
         Ok(Response::new(pb::ProgressResponse { cancelled }))
     }
 
@@ -154,13 +162,10 @@ impl Jobs for Workers {
         {
             return Err(ServiceError::invalid(format!("result frame {bad} is not a PNG")).into());
         }
-        let record = tokio::task::spawn_blocking(move || {
-            service
-                .jobs
-                .finish(&header.job_id, &header.worker, &frames, header.seconds)
-        })
-        .await
-        .map_err(|e| ServiceError::Internal(format!("storing a result panicked: {e}")))??;
+        let record = service
+            .jobs
+            .finish(&header.job_id, &header.worker, frames, header.seconds)
+            .await?;
         tracing::info!(job = %record.id, frames = record.result_frames, "job done");
         Ok(Response::new(pb::FinishResponse {}))
     }
@@ -170,10 +175,11 @@ impl Jobs for Workers {
         request: Request<pb::FailRequest>,
     ) -> Result<Response<pb::FailResponse>, Status> {
         let r = request.into_inner();
-        let record =
-            self.service()?
-                .jobs
-                .fail(&r.job_id, &r.worker, &r.error, r.retryable, r.cancelled)?;
+        let record = self
+            .service()?
+            .jobs
+            .fail(&r.job_id, &r.worker, &r.error, r.retryable, r.cancelled)
+            .await?;
         // A cancellation the client asked for is the job doing as told, not a failure.
         if record.state == JobState::Cancelled {
             tracing::info!(job = %record.id, "worker reported: {}", r.error);
@@ -195,7 +201,11 @@ impl Jobs for Workers {
         };
         // Not the job's fault: its attempt is not counted. Only the worker that holds the job may
         // hand it back (the same `drop it` answer as the other calls).
-        let record = self.service()?.jobs.release(&r.job_id, &r.worker, why)?;
+        let record = self
+            .service()?
+            .jobs
+            .release(&r.job_id, &r.worker, why)
+            .await?;
         tracing::info!(job = %record.id, worker = %r.worker, state = ?record.state, reason = why, "job released: its worker is stopping");
         Ok(Response::new(pb::ReleaseResponse {}))
     }

@@ -6,11 +6,13 @@
 //!
 //! Checked: a clip uploaded to one replica is served by the other (fetched, decoded to the same
 //! bytes); an upload of a clip another replica already has is not encoded again; two replicas
-//! given the same new clip at once encode it once between them (the encode claim); a delete
-//! removes the clip from the shared store, so a replica that never held it answers 404. And the
+//! given the same new clip at once encode it once between them (the encode claim); every replica
+//! lists the cluster's clips; a delete removes the clip from the shared store, so a replica that
+//! never held it answers 404 and one that fetched it stops serving it within seconds. And the
 //! deployment as a whole, on one machine: nginx with `deploy/nginx/nginx.conf` (hashing on the
-//! clip id) in front of two replicas on the S3 bucket, one of them killed mid-traffic: every clip
-//! is still served, through the other, and no clip was encoded twice.
+//! clip id) in front of two replicas on the S3 bucket and one PostgreSQL job database, with a
+//! refiner worker each; one replica killed mid-traffic while its worker runs a job: every clip is
+//! still served, through the other, no clip was encoded twice, and every job finishes once.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
@@ -19,7 +21,8 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use c4g_e2e::{
-    ServerProcess, frames_form, metric, missing, ort_available, synthetic_clip, venv_python,
+    RefinerWorker, ServerProcess, frames_form, metric, missing, ort_available, synthetic_clip,
+    venv_python,
 };
 use reqwest::blocking::Client;
 use serde_json::{Value, json};
@@ -205,7 +208,8 @@ fn share_and_check(shared: &Shared) {
         "two replicas encoded one clip"
     );
 
-    // Deleted on A: gone from the shared store, so a third replica never finds it.
+    // Deleted on A: gone from the shared store, so a third replica never finds it, and B, which
+    // fetched it, stops serving it once it looks again (RECHECK, 5 s).
     let deleted = Client::new()
         .delete(a.at(&format!("/v1/clips/{id}")))
         .send()
@@ -215,9 +219,42 @@ fn share_and_check(shared: &Shared) {
     let c = replica(store_c.path(), shared);
     let (status, _) = decode(&c, &id);
     assert_eq!(status, 404);
-    // The other clip is still everyone's.
+    let deadline = Instant::now() + Duration::from_secs(15);
+    while decode(&b, &id).0 != 404 {
+        assert!(
+            Instant::now() < deadline,
+            "B still serves a clip A deleted, 15 s later"
+        );
+        std::thread::sleep(Duration::from_millis(250));
+    }
+    let gone = Client::new()
+        .get(b.at(&format!("/v1/clips/{id}")))
+        .send()
+        .unwrap();
+    assert_eq!(gone.status(), 404);
+    // The other clip is still everyone's, and every replica lists it, also C, which holds
+    // nothing yet.
     let other = both_a.1["id"].as_str().unwrap();
+    for replica in [&a, &b, &c] {
+        assert_eq!(listed(replica), [other.to_owned()]);
+    }
     assert_eq!(decode(&c, other).0, 200);
+}
+
+/// The ids `GET /v1/clips` lists.
+fn listed(server: &ServerProcess) -> Vec<String> {
+    let body: Value = Client::new()
+        .get(server.at("/v1/clips"))
+        .send()
+        .unwrap()
+        .json()
+        .unwrap();
+    body["clips"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["id"].as_str().unwrap().to_owned())
+        .collect()
 }
 
 /// nginx with deploy/nginx/nginx.conf, its upstreams and listening port replaced; killed when
@@ -288,14 +325,71 @@ fn decode_via(port: u16, id: &str) -> u16 {
         .map_or(0, |r| r.status().as_u16())
 }
 
+/// A refinement job through the proxy.
+fn submit_via(port: u16, clip: &str) -> String {
+    let response = Client::new()
+        .post(format!("http://127.0.0.1:{port}/v1/clips/{clip}/refine"))
+        .json(
+            &json!({"trajectory": {"kind": "orbit", "depth": 2.0, "angle_degrees": 10},
+                      "steps": 12, "seed": 7}),
+        )
+        .send()
+        .unwrap();
+    assert_eq!(response.status(), 202);
+    let job: Value = response.json().unwrap();
+    job["id"].as_str().unwrap().to_owned()
+}
+
+/// Every job, as the cluster sees it (through the proxy: any replica answers).
+fn jobs_via(port: u16) -> Vec<Value> {
+    let listed: Value = Client::new()
+        .get(format!("http://127.0.0.1:{port}/v1/jobs"))
+        .timeout(Duration::from_secs(30))
+        .send()
+        .unwrap()
+        .json()
+        .unwrap();
+    listed["jobs"].as_array().unwrap().clone()
+}
+
+/// Polls the cluster's jobs until `done` says so, or panics after `limit`.
+fn wait_for_jobs(port: u16, limit: Duration, done: impl Fn(&[Value]) -> bool) -> Vec<Value> {
+    let deadline = Instant::now() + limit;
+    loop {
+        let jobs = jobs_via(port);
+        if done(&jobs) {
+            return jobs;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the jobs never got there: {jobs:#?}"
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+/// The deployment as a whole, on one machine: PostgreSQL, an S3 bucket on moto, nginx with
+/// `deploy/nginx/nginx.conf`, two replicas and a refiner worker on each. Clips are uploaded and
+/// refined through the proxy; the replica that encoded the clips is killed while its worker runs
+/// a job and decodes go on: every clip is still served (encoded once in all), and every job
+/// finishes once, the killed replica's by the other side after its lease ran out.
 #[test]
-fn behind_the_hashing_proxy_a_replica_killed_mid_traffic_loses_no_clip() {
+fn the_cluster_on_one_machine_loses_no_clip_and_no_job_when_a_replica_is_killed() {
     if !ort_available() {
         return;
     }
-    let Some((_moto, shared)) = moto_bucket() else {
+    let Some((_moto, mut shared)) = moto_bucket() else {
         return;
     };
+    let Some(db) = c4g_e2e::postgres::TempPostgres::start() else {
+        return;
+    };
+    shared.env.extend([
+        ("C4G_JOB_DATABASE".to_owned(), db.url()),
+        // Short, so that the killed replica's job is found lost within seconds.
+        ("C4G_JOB_LEASE_S".to_owned(), "3".to_owned()),
+        ("C4G_JOB_ATTEMPTS".to_owned(), "3".to_owned()),
+    ]);
     let (store_a, store_b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     let a = replica(store_a.path(), &shared);
     let b = replica(store_b.path(), &shared);
@@ -315,8 +409,18 @@ fn behind_the_hashing_proxy_a_replica_killed_mid_traffic_loses_no_clip() {
     let encoded = encodes(&a) + encodes(&b);
     assert_eq!(encoded, ids.len() as f64, "a clip was encoded twice");
     // Uploads hash on their one path, so one replica encoded them all: that one is killed.
-    let (victim, survivor) = if encodes(&a) > 0.0 { (a, b) } else { (b, a) };
+    let a_encoded = encodes(&a) > 0.0;
+    let (victim, survivor) = if a_encoded { (a, b) } else { (b, a) };
     let survivor_encodes = encodes(&survivor);
+
+    // A worker on each replica, and a job for each clip, in the one queue.
+    let _victim_worker = RefinerWorker::start(&victim.url(), "victim-worker");
+    let _survivor_worker = RefinerWorker::start(&survivor.url(), "survivor-worker");
+    let jobs: Vec<String> = ids.iter().map(|id| submit_via(proxy.port, id)).collect();
+    wait_for_jobs(proxy.port, Duration::from_secs(120), |all| {
+        all.iter()
+            .any(|j| j["state"] == "running" && j["worker"] == "victim-worker")
+    });
 
     // Traffic on every clip while the victim is killed: answers may fail only while nginx
     // finds it gone (requests it had in flight).
@@ -347,9 +451,48 @@ fn behind_the_hashing_proxy_a_replica_killed_mid_traffic_loses_no_clip() {
         survivor_encodes,
         "the survivor encoded a clip the killed replica had published"
     );
+
+    // Every job ends, done, once; the one the killed replica's worker held was taken for lost
+    // and run again on the survivor's side.
+    let ended = wait_for_jobs(proxy.port, Duration::from_secs(240), |all| {
+        all.len() == jobs.len()
+            && all
+                .iter()
+                .all(|j| j["state"] != "queued" && j["state"] != "running")
+    });
+    let mut retried = 0;
+    for job in &ended {
+        assert_eq!(job["state"], "done", "{job:#}");
+        let history: Vec<&str> = job["history"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|h| h.as_str().unwrap())
+            .collect();
+        let finished = history.iter().filter(|h| h.contains(": done on ")).count();
+        assert_eq!(finished, 1, "a job finished {finished} times: {history:?}");
+        retried += usize::from(history.iter().any(|h| h.contains("stopped responding")));
+        // Its result, from the database, through whichever replica the proxy picks.
+        let frame = Client::new()
+            .get(format!(
+                "http://127.0.0.1:{}/v1/jobs/{}/result?frame=0",
+                proxy.port,
+                job["id"].as_str().unwrap()
+            ))
+            .send()
+            .unwrap();
+        assert_eq!(frame.status(), 200);
+        assert!(image::load_from_memory(&frame.bytes().unwrap()).is_ok());
+    }
+    assert!(
+        retried >= 1,
+        "no job was lost with the killed replica: {ended:#?}"
+    );
     eprintln!(
         "cluster: {} clips, {encoded} encodes in all; {failed_during} answers failed while a \
-         replica was killed; every clip served by the other afterwards",
-        ids.len()
+         replica was killed; every clip served by the other afterwards; {} jobs done once each, \
+         {retried} of them taken back from the killed replica's worker",
+        ids.len(),
+        ended.len()
     );
 }

@@ -222,7 +222,8 @@ pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ServiceE
     let clips: Vec<Value> = state
         .service()?
         .store
-        .list()
+        .list_all()
+        .await?
         .iter()
         .map(|r| clip_json(r, None))
         .collect();

@@ -32,7 +32,7 @@ pub async fn submit(
     request.validate(service, &clip_id)?;
     let stored = serde_json::to_value(&request)
         .map_err(|e| ServiceError::Internal(format!("cannot store the request: {e}")))?;
-    let record = service.jobs.create(&clip_id, stored)?;
+    let record = service.jobs.create(&clip_id, stored).await?;
     let location = format!("/v1/jobs/{}", record.id);
     Ok((
         StatusCode::ACCEPTED,
@@ -60,21 +60,21 @@ fn check(request: &RefineRequest, max_context_frames: usize) -> Result<(), Servi
 }
 
 pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ServiceError> {
-    Ok(Json(json!({ "jobs": state.service()?.jobs.list() })))
+    Ok(Json(json!({ "jobs": state.service()?.jobs.list().await? })))
 }
 
 pub async fn get(
     State(state): State<AppState>,
     JobId(id): JobId,
 ) -> Result<Json<Value>, ServiceError> {
-    Ok(Json(json!(state.service()?.jobs.get(&id)?)))
+    Ok(Json(json!(state.service()?.jobs.get(&id).await?)))
 }
 
 pub async fn cancel(
     State(state): State<AppState>,
     JobId(id): JobId,
 ) -> Result<Json<Value>, ServiceError> {
-    Ok(Json(json!(state.service()?.jobs.cancel(&id)?)))
+    Ok(Json(json!(state.service()?.jobs.cancel(&id).await?)))
 }
 
 /// Every change of the job as an SSE `job` event (the whole record), ending after a terminal
@@ -83,7 +83,7 @@ pub async fn events(
     State(state): State<AppState>,
     JobId(id): JobId,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ServiceError> {
-    let mut updates = state.service()?.jobs.subscribe(&id)?;
+    let mut updates = state.service()?.jobs.subscribe(&id).await?;
     let drained = state.drained();
     // A draining server ends its event streams (the job goes on; a client follows it again, on
     // another replica): they could otherwise hold the drain until its deadline.
@@ -144,14 +144,13 @@ pub async fn result(
 ) -> Result<Response, ServiceError> {
     let frame = result_frame(query.as_deref())?;
     let service = state.service()?.clone();
-    let record = service.jobs.get(&id)?;
+    let record = service.jobs.get(&id).await?;
     if record.state != JobState::Done {
         return Err(ServiceError::invalid(format!(
-            "job {id} is {:?}: its result exists once it is done (GET /v1/jobs/{id})",
-            record.state
+            "job {id} is {}: its result exists once it is done (GET /v1/jobs/{id})",
+            record.state.name()
         )));
     }
-    let dir = service.jobs.result_dir(&id);
     if let Some(k) = frame {
         if k >= record.result_frames {
             return Err(ServiceError::NotFound(format!(
@@ -159,45 +158,48 @@ pub async fn result(
                 record.result_frames, record.result_frames
             )));
         }
-        let png = tokio::fs::read(dir.join(format!("{k:04}.png")))
-            .await
-            .map_err(|e| ServiceError::Internal(format!("cannot read a result frame: {e}")))?;
+        let png = service.jobs.result_frame(&id, k).await?;
         return Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response());
     }
-    let video = dir.join("result.mp4");
-    if !video.exists() {
-        let mut frames = Vec::new();
-        let (mut width, mut height) = (0, 0);
-        for k in 0..record.result_frames {
-            let png = tokio::fs::read(dir.join(format!("{k:04}.png")))
-                .await
-                .map_err(|e| ServiceError::Internal(format!("cannot read a result frame: {e}")))?;
-            let image = image::load_from_memory(&png)
-                .map_err(|e| ServiceError::Internal(format!("a result frame is unreadable: {e}")))?
-                .to_rgb8();
-            (width, height) = image.dimensions();
-            frames.push(image.into_raw());
-        }
-        let fps = record.request["fps"].as_f64().unwrap_or(16.0);
-        let mp4 = encode_mp4(
-            &service.tools.ffmpeg,
-            &service.tools.scratch,
-            &frames,
-            width,
-            height,
-            fps,
-        )
-        .await?;
-        let tmp = dir.join(".result.mp4.tmp");
-        let stored = match tokio::fs::write(&tmp, &mp4).await {
-            Ok(()) => tokio::fs::rename(&tmp, &video).await,
-            Err(e) => Err(e),
-        };
-        stored
-            .map_err(|e| ServiceError::Internal(format!("cannot store the result video: {e}")))?;
+    // The video is made from the frames once per replica, and kept (derived: when it cannot
+    // be kept, it is made again next time).
+    let video = service.job_videos.join(format!("{id}.mp4"));
+    if let Ok(mp4) = tokio::fs::read(&video).await {
+        return Ok(([(header::CONTENT_TYPE, "video/mp4")], mp4).into_response());
     }
-    let mp4 = tokio::fs::read(&video)
-        .await
-        .map_err(|e| ServiceError::Internal(format!("cannot read the result video: {e}")))?;
+    let mut frames = Vec::new();
+    let (mut width, mut height) = (0, 0);
+    for k in 0..record.result_frames {
+        let png = service.jobs.result_frame(&id, k).await?;
+        let image = image::load_from_memory(&png)
+            .map_err(|e| ServiceError::Internal(format!("a result frame is unreadable: {e}")))?
+            .to_rgb8();
+        (width, height) = image.dimensions();
+        frames.push(image.into_raw());
+    }
+    let fps = record.request["fps"].as_f64().unwrap_or(16.0);
+    let mp4 = encode_mp4(
+        &service.tools.ffmpeg,
+        &service.tools.scratch,
+        &frames,
+        width,
+        height,
+        fps,
+    )
+    .await?;
+    let (dir, kept) = (service.job_videos.clone(), mp4.clone());
+    let keep = tokio::task::spawn_blocking(move || -> std::io::Result<()> {
+        use std::io::Write;
+        std::fs::create_dir_all(&dir)?;
+        // A temporary file of this request's own, renamed: two requests may make it at once.
+        let mut file = tempfile::Builder::new().prefix(".").tempfile_in(&dir)?;
+        file.write_all(&kept)?;
+        file.persist(&video).map_err(|e| e.error)?;
+        Ok(())
+    })
+    .await;
+    if let Ok(Err(e)) = keep {
+        tracing::warn!(job = %id, "cannot keep the result video: {e}");
+    }
     Ok(([(header::CONTENT_TYPE, "video/mp4")], mp4).into_response())
 }
