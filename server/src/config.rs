@@ -58,7 +58,8 @@ pub struct Config {
     #[arg(long, env = "C4G_INTRA_OP_SPINNING", default_value_t = true, action = clap::ArgAction::Set)]
     pub intra_op_spinning: bool,
     /// Where the model runs. `cuda` needs c4g-server built with `--features cuda` and the
-    /// onnxruntime-gpu library; it never falls back to the CPU silently.
+    /// onnxruntime-gpu library, and refuses to start without them (saying what is missing);
+    /// `auto` uses CUDA when it works and the CPU otherwise, and logs which.
     #[arg(long, env = "C4G_DEVICE", value_enum, default_value_t = DeviceArg::Cpu)]
     pub device: DeviceArg,
     /// CUDA device ordinal (with `--device cuda`).
@@ -164,6 +165,13 @@ pub struct Config {
     /// back (retried, or failed when out of attempts).
     #[arg(long, env = "C4G_JOB_LEASE_S", default_value_t = 60.0)]
     pub job_lease_s: f64,
+    /// How long an exact decode waits for other requests' decodes of the same clip to share its
+    /// decoder run, in milliseconds (`server/src/batching.rs`); 0 turns batching off. Unset: 2
+    /// with `--device cuda`, where one target leaves the GPU idle; 0 on the CPU, where a batch
+    /// costs about as much per target as one at a time (and more at the official size) and the
+    /// wait would only add latency.
+    #[arg(long, env = "C4G_BATCH_WAIT_MS")]
+    pub batch_wait_ms: Option<u64>,
     /// Where refinement jobs are kept: unset, this server's store directory; a PostgreSQL URL
     /// (`postgres://user:password@host/db`, or `?host=/run/postgresql` for a Unix socket), a
     /// database every replica shares: any replica hands jobs to workers and serves their
@@ -213,8 +221,11 @@ pub enum FootprintArg {
 pub enum DeviceArg {
     /// ONNX Runtime's CPU kernels.
     Cpu,
-    /// NVIDIA CUDA.
+    /// NVIDIA CUDA: the server does not start without it.
     Cuda,
+    /// CUDA when it works (a `cuda` build, ONNX Runtime's GPU library and a GPU), else the CPU;
+    /// the log says which was chosen and why.
+    Auto,
 }
 
 /// [`TimePolicy`] as a command-line value.
@@ -327,14 +338,25 @@ impl Config {
         }
     }
 
-    /// The engine options these settings ask for.
+    /// How long an exact decode waits for company (`C4G_BATCH_WAIT_MS`; its default depends on
+    /// the device the model runs on).
+    pub fn batch_wait(&self) -> Duration {
+        let ms = self.batch_wait_ms.unwrap_or(match self.device {
+            DeviceArg::Cuda => 2,
+            DeviceArg::Cpu | DeviceArg::Auto => 0,
+        });
+        Duration::from_millis(ms)
+    }
+
+    /// The engine options these settings ask for (with `auto`, CUDA's: see [`DeviceArg::Auto`]).
     pub fn engine_options(&self) -> EngineOptions {
         EngineOptions {
             session: c4g_engine::SessionOptions {
                 intra_op_threads: self.intra_op_threads,
                 execution_provider: match self.device {
                     DeviceArg::Cpu => ExecutionProvider::Cpu,
-                    DeviceArg::Cuda => ExecutionProvider::Cuda {
+                    // `auto` tries CUDA first (the server falls back when it fails).
+                    DeviceArg::Cuda | DeviceArg::Auto => ExecutionProvider::Cuda {
                         device_id: self.cuda_device,
                     },
                 },

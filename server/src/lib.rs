@@ -8,7 +8,8 @@
 //! | `shared_clips` | clips shared by replicas through object storage (`C4G_SHARED_STORE`): publish, fetch, one encode cluster-wide |
 //! | [`service`] | upload, decode, render: what both transports call |
 //! | `work` | work slots: decodes and renders on blocking threads, bounded, queued, cancellable |
-//! | [`jobs`] | refinement jobs: durable records, the queue, worker leases |
+//! | `batching` | exact decodes of one clip from concurrent requests gathered into shared decoder runs |
+//! | [`jobs`] | refinement jobs: durable records, the queue, worker leases; on disk or in PostgreSQL |
 //! | `refine` | refinement requests, and the video a worker gets |
 //! | `camera` | cameras as clients state them |
 //! | `keyframes` | keyframed decoding as clients ask for it, checked against the limits |
@@ -37,6 +38,7 @@
 
 mod api;
 mod auth;
+mod batching;
 pub mod body_deadline;
 mod camera;
 pub mod config;

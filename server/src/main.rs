@@ -87,8 +87,7 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
     let loading = {
         let (state, config) = (state.clone(), config.clone());
         tokio::task::spawn_blocking(move || -> Result<(), String> {
-            let engine = Engine::load(&config.model, config.engine_options())
-                .map_err(|e| format!("cannot load the model {}: {e}", config.model.display()))?;
+            let (engine, config) = load_engine(config)?;
             tracing::info!(model = %engine.manifest().name, "model loaded");
             state.set_service(Service::new(engine, &config)?);
             Ok(())
@@ -149,6 +148,34 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
     }
     tracing::info!("stopped");
     Ok(())
+}
+
+/// The model on the device the configuration asks for: with `auto`, CUDA when it loads there,
+/// else the CPU; the configuration returned names the device it runs on.
+fn load_engine(mut config: Config) -> Result<(Engine, Config), String> {
+    use c4g_server::config::DeviceArg;
+    let cannot = |e: &dyn std::fmt::Display, config: &Config| {
+        format!("cannot load the model {}: {e}", config.model.display())
+    };
+    match Engine::load(&config.model, config.engine_options()) {
+        Ok(engine) => {
+            if matches!(config.device, DeviceArg::Auto) {
+                config.device = DeviceArg::Cuda;
+            }
+            tracing::info!(device = ?config.device, "the model runs on {:?}", config.device);
+            Ok((engine, config))
+        }
+        // Whatever stopped CUDA (no cuda build, a CPU-only ONNX Runtime, no GPU, a driver that
+        // fails): the CPU is tried, and a package fault fails there too, with its own words.
+        Err(e) if matches!(config.device, DeviceArg::Auto) => {
+            tracing::info!("device auto: CUDA is not available ({e}); the model runs on the CPU");
+            config.device = DeviceArg::Cpu;
+            let engine = Engine::load(&config.model, config.engine_options())
+                .map_err(|e| cannot(&e, &config))?;
+            Ok((engine, config))
+        }
+        Err(e) => Err(cannot(&e, &config)),
+    }
 }
 
 /// Resolves on SIGTERM or Ctrl-C, having started the drain.

@@ -148,6 +148,12 @@ impl Approximation {
         keyframes: Keyframes::Exact,
         prune: None,
     };
+
+    /// Whether this is what the model computes (so it can be decoded in a batch with others'
+    /// exact decodes).
+    pub fn is_exact(&self) -> bool {
+        matches!(self.keyframes, Keyframes::Exact) && self.prune.is_none()
+    }
 }
 
 /// The approximation `spec` asks for over `times` of a clip whose context frames are

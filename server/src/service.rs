@@ -17,6 +17,7 @@ use sha2::{Digest, Sha256};
 use tokio::sync::Semaphore;
 
 use crate::ServiceError;
+use crate::batching::DecodeBatcher;
 use crate::camera::CameraSpec;
 use crate::config::{Config, Limits};
 use crate::intake::{self, IntakeOptions, IntakeTools, Media};
@@ -52,6 +53,8 @@ pub struct Service {
     encode_slots: Arc<Semaphore>,
     work: WorkSlots,
     analyses: Analyses,
+    /// Exact decodes of one clip gathered into shared decoder runs.
+    pub(crate) batcher: DecodeBatcher,
 }
 
 /// A render of one camera at one time.
@@ -124,9 +127,11 @@ impl Service {
             config.footprint(engine.manifest().footprint()),
         )?;
         let work = WorkSlots::new(config.max_concurrent_work(), config.max_queued_work());
+        let batcher = DecodeBatcher::new(config.batch_wait());
         tracing::info!(
             renderer = renderer.name(),
             work_slots = work.capacity(),
+            batch_wait_ms = batcher.wait().as_millis() as u64,
             "service ready"
         );
         Ok(Self {
@@ -141,6 +146,7 @@ impl Service {
             encode_slots: Arc::new(Semaphore::new(config.max_concurrent_encodes.max(1))),
             work,
             analyses: Analyses::default(),
+            batcher,
         })
     }
 
@@ -283,6 +289,9 @@ impl Service {
         self.check_times(&record, &times)?;
         let approximation = self.approximation(&record, &quality, &times)?;
         let encoding = self.store.encoding(id).await?;
+        if approximation.is_exact() {
+            return self.batcher.decode(self, id, encoding, times).await;
+        }
         let id = id.to_owned();
         self.work(move |service| {
             let sets = service.decode_keyframed_now(&encoding, &times, &approximation.keyframes)?;
@@ -437,6 +446,17 @@ impl Service {
         check_background(view.background)?;
         let approximation = self.approximation(&record, &quality, &[view.t])?;
         let encoding = self.store.encoding(id).await?;
+        if approximation.is_exact() {
+            let (_, set) = self
+                .batcher
+                .decode(self, id, encoding, vec![view.t])
+                .await?
+                .pop()
+                .ok_or_else(|| ServiceError::Internal("the decoder returned no set".into()))?;
+            return self
+                .work(move |service| service.render_now(&set, &camera, view.background))
+                .await;
+        }
         let id = id.to_owned();
         self.work(move |service| {
             let plan = service.plan_sets_now(&id, &encoding, &[view.t], &approximation)?;

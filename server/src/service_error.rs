@@ -69,6 +69,9 @@ pub enum ServiceError {
     /// A renderer error, classified by its variant.
     #[error(transparent)]
     Renderer(#[from] RendererError),
+    /// One error answered to several requests (a batched decode that failed), as it is.
+    #[error(transparent)]
+    Shared(std::sync::Arc<ServiceError>),
 }
 
 /// The kinds of [`ServiceError`], as clients see them: the JSON `kind` of a REST error and the
@@ -192,6 +195,7 @@ impl ServiceError {
             Self::Internal(_) => K::Internal,
             Self::Engine(e) => engine_kind(e.kind()),
             Self::Renderer(e) => renderer_kind(e),
+            Self::Shared(e) => e.kind(),
         }
     }
 
@@ -201,6 +205,7 @@ impl ServiceError {
             Self::Busy { retry_after } | Self::Overloaded { retry_after } => Some(*retry_after),
             Self::NotReady | Self::Draining => Some(Duration::from_secs(1)),
             Self::Unavailable(_) => Some(Duration::from_secs(5)),
+            Self::Shared(e) => e.retry_after(),
             _ => None,
         }
     }

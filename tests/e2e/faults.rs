@@ -1094,6 +1094,39 @@ fn a_corrupt_or_missing_model_file_stops_the_server_at_start_with_the_reason() {
     assert!(log.contains("ORT_DYLIB_PATH"), "{log}");
 }
 
+/// No GPU here: `C4G_DEVICE=cuda` refuses to start and says what is missing (this build has no
+/// `cuda` feature; a `cuda` build on a CPU-only ONNX Runtime or a machine without a GPU says
+/// that instead, checked by hand with the CUDA image's binary: docs/deploy.md), while `auto`
+/// starts on the CPU and says why.
+#[test]
+fn cuda_without_a_gpu_is_refused_at_start_and_auto_falls_back_to_the_cpu_saying_so() {
+    if !ort_available() {
+        return;
+    }
+    let log = refused_start(&[], &[("C4G_DEVICE", "cuda")]);
+    assert!(log.contains("cannot load the model"), "{log}");
+    assert!(log.contains("CUDA"), "{log}");
+    assert!(log.contains("cuda` feature"), "{log}");
+
+    let store = tempfile::tempdir().unwrap();
+    let mut server = ServerProcess::spawn(
+        store.path(),
+        ANY_PORT,
+        &[],
+        &[("C4G_DEVICE", "auto"), ("RUST_LOG", "info")],
+    );
+    server.wait_ready();
+    server.wait_for_log("CUDA is not available", Duration::from_secs(30));
+    server.wait_for_log("the model runs on the CPU", Duration::from_secs(5));
+    let id = upload_new(&server, 1.0);
+    let decode = post(
+        &server,
+        &format!("/v1/clips/{id}/gaussians"),
+        json!({"t": 0.3}),
+    );
+    assert_eq!(decode.status(), 200);
+}
+
 #[test]
 fn a_model_run_that_fails_mid_request_answers_500_and_the_server_keeps_serving() {
     if !ort_available() {
