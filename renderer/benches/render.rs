@@ -9,7 +9,8 @@
 //!     C4G_BENCH_BEST_OF=5 cargo bench -p c4g-renderer --features gpu --bench render
 //!
 //! `C4G_BENCH_BEST_OF=N` prints the fastest of N renders per case instead, the two footprints
-//! alternating: what compares them on a machine that other work shares.
+//! alternating: what compares them on a machine that other work shares. `C4G_BENCH_ONLY=gpu`
+//! leaves the CPU rasterizer out.
 //!
 //! The scene is plausible rather than adversarial: Gaussians fill a frustum slab at depth 2..6 in
 //! front of a camera with C4G's default intrinsics, nearly all in view, anisotropic, randomly
@@ -171,7 +172,10 @@ fn render(c: &mut Criterion) {
         Some(reps) => best_of(name, rasterizer, reps),
         None => bench(c, name, rasterizer),
     };
-    run("cpu_render", &cpu);
+    // `C4G_BENCH_ONLY=gpu`: the wgpu rasterizer alone (scripts/device-check, where time is short).
+    if std::env::var("C4G_BENCH_ONLY").as_deref() != Ok("gpu") {
+        run("cpu_render", &cpu);
+    }
     #[cfg(feature = "gpu")]
     match c4g_renderer::GpuRasterizer::new() {
         Ok(gpu) => {

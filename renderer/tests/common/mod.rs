@@ -74,7 +74,11 @@ impl Diff {
 }
 
 pub fn workspace() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+    // `C4G_WORKSPACE`: a test binary run away from the checkout it was built in
+    // (scripts/device-check carries it to a GPU machine with the repository).
+    std::env::var_os("C4G_WORKSPACE")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(".."))
 }
 
 pub fn scenes_dir() -> PathBuf {
