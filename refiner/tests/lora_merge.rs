@@ -6,6 +6,8 @@
 //!   safetensors, within 1e-6 of the weight's magnitude; PEFT and Wan files give bit-identical
 //!   merged weights; scale 0 merges nothing.
 //! - A key that cannot be placed, or whose shape does not fit, is an error naming the key.
+//! - C4G's published format (DiffSynth-Studio's PEFT keys on the VACE branch, no alpha) merges
+//!   onto exactly the VACE blocks' attention and FFN linears.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 mod common;
@@ -239,4 +241,123 @@ fn a_key_that_cannot_be_placed_or_does_not_fit_is_an_error_naming_it() {
     let err = merged_weights(&Lora::load(&bad).unwrap(), &w, 1.0).unwrap_err();
     assert!(err.to_string().contains("text_embedding.0"), "{err}");
     assert!(err.to_string().contains("does not fit"), "{err}");
+}
+
+/// C4G's published LoRA, as its DiffSynth-Studio fork saves it: PEFT's adapter name in the keys
+/// (`vace_blocks.N.self_attn.q.lora_A.default.weight`, `lora_B.default.weight`), the `pipe.vace.`
+/// prefix removed, no alpha tensor and no adapter_config.json (alpha = rank: scale 1), on the VACE
+/// branch's self-attention, cross-attention and FFN linears (`WAN_VACE.md`, "C4G's own refinement
+/// pipeline"). Built here in exactly that format with random factors over every VACE block of the
+/// fixture: each targeted module merges to `W + B·A` (f64, scale 1) and no other weight is touched.
+#[test]
+fn a_diffsynth_lora_on_the_vace_branch_merges_onto_exactly_its_modules() {
+    if fixture_skip_reason().is_some() {
+        return;
+    }
+    use rand_chacha::rand_core::{RngCore, SeedableRng};
+    let w = weights();
+    let blocks: std::collections::BTreeSet<usize> = w
+        .names()
+        .into_iter()
+        .filter_map(|n| {
+            n.strip_prefix("vace_blocks.")?
+                .split('.')
+                .next()?
+                .parse()
+                .ok()
+        })
+        .collect();
+    assert!(!blocks.is_empty(), "the fixture has no VACE blocks");
+    let (rank, mut rng) = (4, rand_chacha::ChaCha8Rng::seed_from_u64(19));
+    let mut uniform = move || (rng.next_u32() as f32 / u32::MAX as f32 - 0.5) * 0.2;
+    let mut tensors: Vec<(String, Vec<usize>, Vec<f32>)> = Vec::new();
+    let mut expected: BTreeMap<String, (Vec<f32>, Vec<f32>, usize, usize)> = BTreeMap::new();
+    for block in &blocks {
+        for (wan, diffusers) in [
+            ("self_attn.q", "attn1.to_q"),
+            ("self_attn.k", "attn1.to_k"),
+            ("self_attn.v", "attn1.to_v"),
+            ("self_attn.o", "attn1.to_out.0"),
+            ("cross_attn.q", "attn2.to_q"),
+            ("cross_attn.k", "attn2.to_k"),
+            ("cross_attn.v", "attn2.to_v"),
+            ("cross_attn.o", "attn2.to_out.0"),
+            ("ffn.0", "ffn.net.0.proj"),
+            ("ffn.2", "ffn.net.2"),
+        ] {
+            let initializer = format!("vace_blocks.{block}.{diffusers}.weight");
+            let dims = w.get(&initializer).unwrap().dims().to_vec();
+            let (rows, cols) = (dims[0], dims[1]);
+            let a: Vec<f32> = (0..rank * cols).map(|_| uniform()).collect();
+            let b: Vec<f32> = (0..rows * rank).map(|_| uniform()).collect();
+            let key = format!("vace_blocks.{block}.{wan}");
+            tensors.push((
+                format!("{key}.lora_A.default.weight"),
+                vec![rank, cols],
+                a.clone(),
+            ));
+            tensors.push((
+                format!("{key}.lora_B.default.weight"),
+                vec![rows, rank],
+                b.clone(),
+            ));
+            expected.insert(initializer, (a, b, rows, cols));
+        }
+    }
+    let bytes: Vec<Vec<u8>> = tensors
+        .iter()
+        .map(|(_, _, v)| v.iter().flat_map(|x| x.to_le_bytes()).collect())
+        .collect();
+    let views: Vec<(String, safetensors::tensor::TensorView<'_>)> = tensors
+        .iter()
+        .zip(&bytes)
+        .map(|((k, s, _), d)| {
+            (
+                k.clone(),
+                safetensors::tensor::TensorView::new(Dtype::F32, s.clone(), d).unwrap(),
+            )
+        })
+        .collect();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("c4g_vace_lora.safetensors");
+    std::fs::write(&path, safetensors::serialize(views, None).unwrap()).unwrap();
+
+    let lora = Lora::load(&path).unwrap();
+    assert!(
+        lora.modules().iter().all(|m| m.scale == 1.0),
+        "no alpha: scale 1"
+    );
+    let merged = merged_weights(&lora, &w, 1.0).unwrap();
+    let names: Vec<&str> = merged.iter().map(|m| m.name.as_str()).collect();
+    let targeted: Vec<&str> = expected.keys().map(String::as_str).collect();
+    assert_eq!(
+        names, targeted,
+        "merged exactly the targeted weights, nothing else"
+    );
+    let mut worst = 0.0f64;
+    for m in &merged {
+        let (a, b, rows, cols) = &expected[&m.name];
+        let base = w.read_f32(w.get(&m.name).unwrap()).unwrap();
+        let got = m.values.to_f32();
+        let magnitude = base
+            .iter()
+            .map(|v| f64::from(v.abs()))
+            .fold(1e-12, f64::max);
+        for o in 0..*rows {
+            for i in 0..*cols {
+                let delta: f64 = (0..rank)
+                    .map(|k| f64::from(b[o * rank + k]) * f64::from(a[k * cols + i]))
+                    .sum();
+                let err = (f64::from(got[o * cols + i]) - (f64::from(base[o * cols + i]) + delta))
+                    .abs()
+                    / magnitude;
+                worst = worst.max(err);
+            }
+        }
+    }
+    assert!(worst < 1e-6, "{worst:e}");
+    assert!(
+        merged.iter().all(|m| m.name.starts_with("vace_blocks.")),
+        "the main blocks are untouched"
+    );
 }
