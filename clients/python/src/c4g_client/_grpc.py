@@ -1,0 +1,293 @@
+"""gRPC ``StreamGaussians`` (``c4g.v1.C4G``, same port as REST): Gaussian sets over a time
+range as an iterator, with the transport's flow control (the server decodes a bounded number
+of sets ahead of a slow reader). Needs the ``grpc`` extra (grpcio, protobuf).
+
+The messages come from the committed ``_proto/c4g_pb2.py``; the call is made with grpcio's
+generic ``unary_stream`` on the method's path rather than a generated service stub, so the
+package carries no grpcio-version-pinned code. Each message is a set in packed columns
+(``f32`` or ``f16``, read like ``C4GS``), or, for a compact stream, a piece of one ``C4GV``
+stream fed to the same incremental decoder as the REST stream.
+
+Errors carry the server's kind from the ``c4g-error-kind`` metadata entry, so a gRPC
+``NOT_FOUND`` raises the same :class:`~c4g_client.NotFound` as REST's 404. The first set is
+fetched before the call returns, so a bad request fails at the call, as REST's does.
+"""
+
+from __future__ import annotations
+
+from typing import Any, AsyncIterator, Iterator, List, Optional, Tuple
+from urllib.parse import urlsplit
+
+from . import _c4gs
+from ._approx import Keyframes, KeyframesLike, Prune, PruneLike
+from ._c4gv import C4GVDecoder
+from ._errors import C4GError, TransportError, grpc_api_error
+from ._sets import GaussianSet
+
+METHOD = "/c4g.v1.C4G/StreamGaussians"
+KIND_KEY = "c4g-error-kind"
+
+_QUALITY = {"exact": 1, "balanced": 2, "fast": 3}
+_PRECISION = {"f32": 1, "f16": 2}
+_PRECISION_NAMES = {0: "f32", 1: "f32", 2: "f16"}
+
+
+def _modules() -> Tuple[Any, Any]:
+    try:
+        import grpc
+
+        from ._proto import c4g_pb2
+    except ImportError as e:  # pragma: no cover - depends on the environment
+        raise ImportError(f"gRPC streaming needs the grpc extra: pip install 'c4g-client[grpc]' ({e})") from e
+    return grpc, c4g_pb2
+
+
+def target_for(base_url: str) -> Tuple[str, bool]:
+    """The channel target (``host:port``) of a base URL, and whether it is TLS."""
+    parts = urlsplit(base_url)
+    secure = parts.scheme == "https"
+    port = parts.port or (443 if secure else 80)
+    host = parts.hostname or ""
+    if ":" in host:
+        host = f"[{host}]"
+    return f"{host}:{port}", secure
+
+
+def stream_request(
+    clip_id: str,
+    *,
+    start: Optional[float] = None,
+    end: Optional[float] = None,
+    step: Optional[float] = None,
+    fps: Optional[float] = None,
+    precision: str = "f32",
+    quality: Optional[str] = None,
+    keyframes: Optional[KeyframesLike] = None,
+    prune: Optional[PruneLike] = None,
+    compact: Optional[Tuple[float, int]] = None,
+) -> Any:
+    """The ``StreamGaussiansRequest`` for these options (``compact``: position error and
+    keyframe interval, 0 for the server's defaults)."""
+    _, pb = _modules()
+    request = pb.StreamGaussiansRequest(clip_id=clip_id)
+    if start is not None:
+        request.start = start
+    if end is not None:
+        request.end = end
+    if step is not None and fps is not None:
+        raise ValueError("give step or fps, not both")
+    if step is not None:
+        request.step = step
+    if fps is not None:
+        request.fps = fps
+    if precision not in _PRECISION:
+        raise ValueError(f"unknown precision {precision!r} (f32 or f16)")
+    request.precision = _PRECISION[precision]
+    if quality is not None:
+        if quality not in _QUALITY:
+            raise ValueError(f"unknown quality {quality!r} (exact, balanced or fast)")
+        request.quality = _QUALITY[quality]
+    if keyframes is not None:
+        request.keyframes.CopyFrom(_keyframes(pb, keyframes))
+    if prune is not None:
+        fields = prune.to_json() if isinstance(prune, Prune) else dict(prune)
+        request.prune.CopyFrom(pb.Prune(**fields))
+    if compact is not None:
+        request.compact.CopyFrom(
+            pb.CompactStream(position_error=compact[0], keyframe_interval=int(compact[1]))
+        )
+    return request
+
+
+def _keyframes(pb: Any, keyframes: KeyframesLike) -> Any:
+    fields = keyframes.to_json() if isinstance(keyframes, Keyframes) else dict(keyframes)
+    if "every_s" in fields:
+        return pb.Keyframes(every_s=fields["every_s"])
+    if "count" in fields:
+        return pb.Keyframes(count=fields["count"])
+    adaptive = {
+        k: fields[k] for k in ("tolerance", "color_tolerance", "max", "min_interval_s") if k in fields
+    }
+    return pb.Keyframes(adaptive=pb.AdaptiveKeyframes(**adaptive))
+
+
+def metadata_for(api_key: Optional[str]) -> List[Tuple[str, str]]:
+    return [("authorization", f"Bearer {api_key}")] if api_key else []
+
+
+def error_from(error: Any) -> C4GError:
+    """The exception for a failed call: the server's kind when it sent one; a connection that
+    never opened is a :class:`TransportError`."""
+    code = error.code().name if hasattr(error, "code") and error.code() is not None else "UNKNOWN"
+    details = error.details() if hasattr(error, "details") else str(error)
+    kind = None
+    try:
+        for key, value in error.trailing_metadata() or ():
+            if key == KIND_KEY:
+                kind = value
+    except Exception:  # noqa: BLE001 - a status without metadata
+        kind = None
+    if kind is None and code == "UNAVAILABLE":
+        return TransportError(f"gRPC: {details}")
+    return grpc_api_error(code, details or "", kind)
+
+
+class _Frames:
+    """Turns the stream's messages into sets: packed columns, or pieces of one C4GV stream."""
+
+    def __init__(self, compact: bool) -> None:
+        self._decoder = C4GVDecoder() if compact else None
+
+    def push(self, message: Any) -> List[GaussianSet]:
+        if self._decoder is None:
+            g = message.gaussians
+            precision = _PRECISION_NAMES.get(g.precision, "f32")
+            columns = [g.means, g.scales, g.rotations, g.opacities, g.colors]
+            return [_c4gs.unpack_columns(message.time, g.count, precision, columns)]
+        self._decoder.feed(message.c4gv)
+        return list(self._decoder.frames())
+
+    def finish(self) -> None:
+        if self._decoder is not None:
+            self._decoder.finish()
+
+
+class GrpcSetStream:
+    """Sets in time order from a ``StreamGaussians`` call (close it, or use ``with``, to stop
+    early: the server stops decoding)."""
+
+    def __init__(self, base_url: str, api_key: Optional[str], request: Any, compact: bool) -> None:
+        grpc, pb = _modules()
+        self._grpc = grpc
+        target, secure = target_for(base_url)
+        self._channel = (
+            grpc.secure_channel(target, grpc.ssl_channel_credentials())
+            if secure
+            else grpc.insecure_channel(target)
+        )
+        method = self._channel.unary_stream(
+            METHOD,
+            request_serializer=pb.StreamGaussiansRequest.SerializeToString,
+            response_deserializer=pb.GaussianFrame.FromString,
+        )
+        self._call = method(request, metadata=metadata_for(api_key))
+        self._frames = _Frames(compact)
+        self._pending: List[GaussianSet] = []
+        self._ended = False
+        try:
+            self._fill()
+        except BaseException:
+            self.close()
+            raise
+
+    def _fill(self) -> None:
+        """Reads messages until a set is pending or the stream ends."""
+        while not self._pending and not self._ended:
+            try:
+                message = next(self._call)
+            except StopIteration:
+                self._ended = True
+                self._frames.finish()
+                return
+            except self._grpc.RpcError as e:
+                self._ended = True
+                raise error_from(e) from None
+            self._pending.extend(self._frames.push(message))
+
+    def __iter__(self) -> Iterator[GaussianSet]:
+        return self
+
+    def __next__(self) -> GaussianSet:
+        try:
+            self._fill()
+        except BaseException:
+            self.close()
+            raise
+        if not self._pending:
+            self.close()
+            raise StopIteration
+        return self._pending.pop(0)
+
+    def close(self) -> None:
+        """Cancels the call (if still running) and closes the channel."""
+        try:
+            self._call.cancel()
+        finally:
+            self._channel.close()
+
+    def __enter__(self) -> GrpcSetStream:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+class AsyncGrpcSetStream:
+    """:class:`GrpcSetStream` for asyncio (``grpc.aio``); make one with
+    :meth:`AsyncClient.grpc_stream <c4g_client.AsyncClient.grpc_stream>`."""
+
+    def __init__(self, base_url: str, api_key: Optional[str], request: Any, compact: bool) -> None:
+        grpc, pb = _modules()
+        self._grpc = grpc
+        target, secure = target_for(base_url)
+        self._channel = (
+            grpc.aio.secure_channel(target, grpc.ssl_channel_credentials())
+            if secure
+            else grpc.aio.insecure_channel(target)
+        )
+        method = self._channel.unary_stream(
+            METHOD,
+            request_serializer=pb.StreamGaussiansRequest.SerializeToString,
+            response_deserializer=pb.GaussianFrame.FromString,
+        )
+        self._call = method(request, metadata=metadata_for(api_key))
+        self._messages = self._call.__aiter__()
+        self._frames = _Frames(compact)
+        self._pending: List[GaussianSet] = []
+        self._ended = False
+
+    async def _fill(self) -> None:
+        while not self._pending and not self._ended:
+            try:
+                message = await self._messages.__anext__()
+            except StopAsyncIteration:
+                self._ended = True
+                self._frames.finish()
+                return
+            except self._grpc.RpcError as e:
+                self._ended = True
+                raise error_from(e) from None
+            self._pending.extend(self._frames.push(message))
+
+    async def start(self) -> AsyncGrpcSetStream:
+        """Waits for the first set (so a bad request fails here)."""
+        try:
+            await self._fill()
+        except BaseException:
+            await self.aclose()
+            raise
+        return self
+
+    def __aiter__(self) -> AsyncIterator[GaussianSet]:
+        return self
+
+    async def __anext__(self) -> GaussianSet:
+        try:
+            await self._fill()
+        except BaseException:
+            await self.aclose()
+            raise
+        if not self._pending:
+            await self.aclose()
+            raise StopAsyncIteration
+        return self._pending.pop(0)
+
+    async def aclose(self) -> None:
+        self._call.cancel()
+        await self._channel.close()
+
+    async def __aenter__(self) -> AsyncGrpcSetStream:
+        return self
+
+    async def __aexit__(self, *exc: Any) -> None:
+        await self.aclose()

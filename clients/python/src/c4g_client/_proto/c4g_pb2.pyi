@@ -1,0 +1,369 @@
+from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class MediaKind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    MEDIA_KIND_UNSPECIFIED: _ClassVar[MediaKind]
+    MEDIA_KIND_VIDEO: _ClassVar[MediaKind]
+    MEDIA_KIND_ZIP: _ClassVar[MediaKind]
+    MEDIA_KIND_TAR: _ClassVar[MediaKind]
+
+class ClipState(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    CLIP_STATE_UNSPECIFIED: _ClassVar[ClipState]
+    CLIP_STATE_ENCODING: _ClassVar[ClipState]
+    CLIP_STATE_READY: _ClassVar[ClipState]
+
+class Precision(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    PRECISION_UNSPECIFIED: _ClassVar[Precision]
+    PRECISION_F32: _ClassVar[Precision]
+    PRECISION_F16: _ClassVar[Precision]
+
+class Quality(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    QUALITY_UNSPECIFIED: _ClassVar[Quality]
+    QUALITY_EXACT: _ClassVar[Quality]
+    QUALITY_BALANCED: _ClassVar[Quality]
+    QUALITY_FAST: _ClassVar[Quality]
+
+class ImageFormat(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    IMAGE_FORMAT_UNSPECIFIED: _ClassVar[ImageFormat]
+    IMAGE_FORMAT_PNG: _ClassVar[ImageFormat]
+    IMAGE_FORMAT_DEPTH_F32: _ClassVar[ImageFormat]
+    IMAGE_FORMAT_ALPHA_F32: _ClassVar[ImageFormat]
+MEDIA_KIND_UNSPECIFIED: MediaKind
+MEDIA_KIND_VIDEO: MediaKind
+MEDIA_KIND_ZIP: MediaKind
+MEDIA_KIND_TAR: MediaKind
+CLIP_STATE_UNSPECIFIED: ClipState
+CLIP_STATE_ENCODING: ClipState
+CLIP_STATE_READY: ClipState
+PRECISION_UNSPECIFIED: Precision
+PRECISION_F32: Precision
+PRECISION_F16: Precision
+QUALITY_UNSPECIFIED: Quality
+QUALITY_EXACT: Quality
+QUALITY_BALANCED: Quality
+QUALITY_FAST: Quality
+IMAGE_FORMAT_UNSPECIFIED: ImageFormat
+IMAGE_FORMAT_PNG: ImageFormat
+IMAGE_FORMAT_DEPTH_F32: ImageFormat
+IMAGE_FORMAT_ALPHA_F32: ImageFormat
+
+class UploadRequest(_message.Message):
+    __slots__ = ("header", "chunk")
+    HEADER_FIELD_NUMBER: _ClassVar[int]
+    CHUNK_FIELD_NUMBER: _ClassVar[int]
+    header: UploadHeader
+    chunk: bytes
+    def __init__(self, header: _Optional[_Union[UploadHeader, _Mapping]] = ..., chunk: _Optional[bytes] = ...) -> None: ...
+
+class UploadHeader(_message.Message):
+    __slots__ = ("kind", "filename", "fps", "timestamps", "sampling")
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    FILENAME_FIELD_NUMBER: _ClassVar[int]
+    FPS_FIELD_NUMBER: _ClassVar[int]
+    TIMESTAMPS_FIELD_NUMBER: _ClassVar[int]
+    SAMPLING_FIELD_NUMBER: _ClassVar[int]
+    kind: MediaKind
+    filename: str
+    fps: float
+    timestamps: _containers.RepeatedScalarFieldContainer[float]
+    sampling: ClipSampling
+    def __init__(self, kind: _Optional[_Union[MediaKind, str]] = ..., filename: _Optional[str] = ..., fps: _Optional[float] = ..., timestamps: _Optional[_Iterable[float]] = ..., sampling: _Optional[_Union[ClipSampling, _Mapping]] = ...) -> None: ...
+
+class ClipSampling(_message.Message):
+    __slots__ = ("max_frames", "stride", "start", "end")
+    MAX_FRAMES_FIELD_NUMBER: _ClassVar[int]
+    STRIDE_FIELD_NUMBER: _ClassVar[int]
+    START_FIELD_NUMBER: _ClassVar[int]
+    END_FIELD_NUMBER: _ClassVar[int]
+    max_frames: int
+    stride: int
+    start: float
+    end: float
+    def __init__(self, max_frames: _Optional[int] = ..., stride: _Optional[int] = ..., start: _Optional[float] = ..., end: _Optional[float] = ...) -> None: ...
+
+class ClipRef(_message.Message):
+    __slots__ = ("clip_id",)
+    CLIP_ID_FIELD_NUMBER: _ClassVar[int]
+    clip_id: str
+    def __init__(self, clip_id: _Optional[str] = ...) -> None: ...
+
+class Clip(_message.Message):
+    __slots__ = ("clip_id", "model", "context_times", "source_frames", "source_width", "source_height", "duration", "state", "feature_bytes", "source_kind", "source_fps", "created", "source_warnings")
+    CLIP_ID_FIELD_NUMBER: _ClassVar[int]
+    MODEL_FIELD_NUMBER: _ClassVar[int]
+    CONTEXT_TIMES_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_FRAMES_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_WIDTH_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    DURATION_FIELD_NUMBER: _ClassVar[int]
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    FEATURE_BYTES_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_KIND_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_FPS_FIELD_NUMBER: _ClassVar[int]
+    CREATED_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_WARNINGS_FIELD_NUMBER: _ClassVar[int]
+    clip_id: str
+    model: str
+    context_times: _containers.RepeatedScalarFieldContainer[float]
+    source_frames: int
+    source_width: int
+    source_height: int
+    duration: float
+    state: ClipState
+    feature_bytes: int
+    source_kind: str
+    source_fps: float
+    created: bool
+    source_warnings: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, clip_id: _Optional[str] = ..., model: _Optional[str] = ..., context_times: _Optional[_Iterable[float]] = ..., source_frames: _Optional[int] = ..., source_width: _Optional[int] = ..., source_height: _Optional[int] = ..., duration: _Optional[float] = ..., state: _Optional[_Union[ClipState, str]] = ..., feature_bytes: _Optional[int] = ..., source_kind: _Optional[str] = ..., source_fps: _Optional[float] = ..., created: _Optional[bool] = ..., source_warnings: _Optional[_Iterable[str]] = ...) -> None: ...
+
+class ListClipsRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class ListClipsResponse(_message.Message):
+    __slots__ = ("clips",)
+    CLIPS_FIELD_NUMBER: _ClassVar[int]
+    clips: _containers.RepeatedCompositeFieldContainer[Clip]
+    def __init__(self, clips: _Optional[_Iterable[_Union[Clip, _Mapping]]] = ...) -> None: ...
+
+class DeleteClipResponse(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class GaussianSet(_message.Message):
+    __slots__ = ("count", "precision", "means", "scales", "rotations", "opacities", "colors")
+    COUNT_FIELD_NUMBER: _ClassVar[int]
+    PRECISION_FIELD_NUMBER: _ClassVar[int]
+    MEANS_FIELD_NUMBER: _ClassVar[int]
+    SCALES_FIELD_NUMBER: _ClassVar[int]
+    ROTATIONS_FIELD_NUMBER: _ClassVar[int]
+    OPACITIES_FIELD_NUMBER: _ClassVar[int]
+    COLORS_FIELD_NUMBER: _ClassVar[int]
+    count: int
+    precision: Precision
+    means: bytes
+    scales: bytes
+    rotations: bytes
+    opacities: bytes
+    colors: bytes
+    def __init__(self, count: _Optional[int] = ..., precision: _Optional[_Union[Precision, str]] = ..., means: _Optional[bytes] = ..., scales: _Optional[bytes] = ..., rotations: _Optional[bytes] = ..., opacities: _Optional[bytes] = ..., colors: _Optional[bytes] = ...) -> None: ...
+
+class DecodeRequest(_message.Message):
+    __slots__ = ("clip_id", "times", "precision", "keyframes", "quality", "prune")
+    CLIP_ID_FIELD_NUMBER: _ClassVar[int]
+    TIMES_FIELD_NUMBER: _ClassVar[int]
+    PRECISION_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    QUALITY_FIELD_NUMBER: _ClassVar[int]
+    PRUNE_FIELD_NUMBER: _ClassVar[int]
+    clip_id: str
+    times: _containers.RepeatedScalarFieldContainer[float]
+    precision: Precision
+    keyframes: Keyframes
+    quality: Quality
+    prune: Prune
+    def __init__(self, clip_id: _Optional[str] = ..., times: _Optional[_Iterable[float]] = ..., precision: _Optional[_Union[Precision, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ...) -> None: ...
+
+class Prune(_message.Message):
+    __slots__ = ("contribution_px", "opacity")
+    CONTRIBUTION_PX_FIELD_NUMBER: _ClassVar[int]
+    OPACITY_FIELD_NUMBER: _ClassVar[int]
+    contribution_px: float
+    opacity: float
+    def __init__(self, contribution_px: _Optional[float] = ..., opacity: _Optional[float] = ...) -> None: ...
+
+class Keyframes(_message.Message):
+    __slots__ = ("every_s", "count", "adaptive")
+    EVERY_S_FIELD_NUMBER: _ClassVar[int]
+    COUNT_FIELD_NUMBER: _ClassVar[int]
+    ADAPTIVE_FIELD_NUMBER: _ClassVar[int]
+    every_s: float
+    count: int
+    adaptive: AdaptiveKeyframes
+    def __init__(self, every_s: _Optional[float] = ..., count: _Optional[int] = ..., adaptive: _Optional[_Union[AdaptiveKeyframes, _Mapping]] = ...) -> None: ...
+
+class AdaptiveKeyframes(_message.Message):
+    __slots__ = ("tolerance", "color_tolerance", "max", "min_interval_s")
+    TOLERANCE_FIELD_NUMBER: _ClassVar[int]
+    COLOR_TOLERANCE_FIELD_NUMBER: _ClassVar[int]
+    MAX_FIELD_NUMBER: _ClassVar[int]
+    MIN_INTERVAL_S_FIELD_NUMBER: _ClassVar[int]
+    tolerance: float
+    color_tolerance: float
+    max: int
+    min_interval_s: float
+    def __init__(self, tolerance: _Optional[float] = ..., color_tolerance: _Optional[float] = ..., max: _Optional[int] = ..., min_interval_s: _Optional[float] = ...) -> None: ...
+
+class DecodeResponse(_message.Message):
+    __slots__ = ("frames",)
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
+    frames: _containers.RepeatedCompositeFieldContainer[GaussianFrame]
+    def __init__(self, frames: _Optional[_Iterable[_Union[GaussianFrame, _Mapping]]] = ...) -> None: ...
+
+class GaussianFrame(_message.Message):
+    __slots__ = ("time", "gaussians", "c4gv")
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    GAUSSIANS_FIELD_NUMBER: _ClassVar[int]
+    C4GV_FIELD_NUMBER: _ClassVar[int]
+    time: float
+    gaussians: GaussianSet
+    c4gv: bytes
+    def __init__(self, time: _Optional[float] = ..., gaussians: _Optional[_Union[GaussianSet, _Mapping]] = ..., c4gv: _Optional[bytes] = ...) -> None: ...
+
+class CompactStream(_message.Message):
+    __slots__ = ("position_error", "keyframe_interval")
+    POSITION_ERROR_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAME_INTERVAL_FIELD_NUMBER: _ClassVar[int]
+    position_error: float
+    keyframe_interval: int
+    def __init__(self, position_error: _Optional[float] = ..., keyframe_interval: _Optional[int] = ...) -> None: ...
+
+class StreamGaussiansRequest(_message.Message):
+    __slots__ = ("clip_id", "start", "end", "step", "fps", "precision", "keyframes", "quality", "prune", "compact")
+    CLIP_ID_FIELD_NUMBER: _ClassVar[int]
+    START_FIELD_NUMBER: _ClassVar[int]
+    END_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    FPS_FIELD_NUMBER: _ClassVar[int]
+    PRECISION_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    QUALITY_FIELD_NUMBER: _ClassVar[int]
+    PRUNE_FIELD_NUMBER: _ClassVar[int]
+    COMPACT_FIELD_NUMBER: _ClassVar[int]
+    clip_id: str
+    start: float
+    end: float
+    step: float
+    fps: float
+    precision: Precision
+    keyframes: Keyframes
+    quality: Quality
+    prune: Prune
+    compact: CompactStream
+    def __init__(self, clip_id: _Optional[str] = ..., start: _Optional[float] = ..., end: _Optional[float] = ..., step: _Optional[float] = ..., fps: _Optional[float] = ..., precision: _Optional[_Union[Precision, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ..., compact: _Optional[_Union[CompactStream, _Mapping]] = ...) -> None: ...
+
+class Intrinsics(_message.Message):
+    __slots__ = ("fx", "fy", "cx", "cy")
+    FX_FIELD_NUMBER: _ClassVar[int]
+    FY_FIELD_NUMBER: _ClassVar[int]
+    CX_FIELD_NUMBER: _ClassVar[int]
+    CY_FIELD_NUMBER: _ClassVar[int]
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ...) -> None: ...
+
+class Camera(_message.Message):
+    __slots__ = ("world_to_camera", "intrinsics")
+    WORLD_TO_CAMERA_FIELD_NUMBER: _ClassVar[int]
+    INTRINSICS_FIELD_NUMBER: _ClassVar[int]
+    world_to_camera: _containers.RepeatedScalarFieldContainer[float]
+    intrinsics: Intrinsics
+    def __init__(self, world_to_camera: _Optional[_Iterable[float]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ...) -> None: ...
+
+class RenderRequest(_message.Message):
+    __slots__ = ("clip_id", "time", "camera", "width", "height", "format", "background", "quality", "prune")
+    CLIP_ID_FIELD_NUMBER: _ClassVar[int]
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    CAMERA_FIELD_NUMBER: _ClassVar[int]
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    FORMAT_FIELD_NUMBER: _ClassVar[int]
+    BACKGROUND_FIELD_NUMBER: _ClassVar[int]
+    QUALITY_FIELD_NUMBER: _ClassVar[int]
+    PRUNE_FIELD_NUMBER: _ClassVar[int]
+    clip_id: str
+    time: float
+    camera: Camera
+    width: int
+    height: int
+    format: ImageFormat
+    background: _containers.RepeatedScalarFieldContainer[float]
+    quality: Quality
+    prune: Prune
+    def __init__(self, clip_id: _Optional[str] = ..., time: _Optional[float] = ..., camera: _Optional[_Union[Camera, _Mapping]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., background: _Optional[_Iterable[float]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ...) -> None: ...
+
+class RenderTrajectoryRequest(_message.Message):
+    __slots__ = ("clip_id", "start", "end", "frames", "preset_json", "cameras", "width", "height", "format", "camera", "background", "keyframes", "quality", "prune")
+    CLIP_ID_FIELD_NUMBER: _ClassVar[int]
+    START_FIELD_NUMBER: _ClassVar[int]
+    END_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
+    PRESET_JSON_FIELD_NUMBER: _ClassVar[int]
+    CAMERAS_FIELD_NUMBER: _ClassVar[int]
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    FORMAT_FIELD_NUMBER: _ClassVar[int]
+    CAMERA_FIELD_NUMBER: _ClassVar[int]
+    BACKGROUND_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    QUALITY_FIELD_NUMBER: _ClassVar[int]
+    PRUNE_FIELD_NUMBER: _ClassVar[int]
+    clip_id: str
+    start: float
+    end: float
+    frames: int
+    preset_json: str
+    cameras: _containers.RepeatedCompositeFieldContainer[Camera]
+    width: int
+    height: int
+    format: ImageFormat
+    camera: Camera
+    background: _containers.RepeatedScalarFieldContainer[float]
+    keyframes: Keyframes
+    quality: Quality
+    prune: Prune
+    def __init__(self, clip_id: _Optional[str] = ..., start: _Optional[float] = ..., end: _Optional[float] = ..., frames: _Optional[int] = ..., preset_json: _Optional[str] = ..., cameras: _Optional[_Iterable[_Union[Camera, _Mapping]]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., camera: _Optional[_Union[Camera, _Mapping]] = ..., background: _Optional[_Iterable[float]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ...) -> None: ...
+
+class RenderedImage(_message.Message):
+    __slots__ = ("time", "width", "height", "format", "data")
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    FORMAT_FIELD_NUMBER: _ClassVar[int]
+    DATA_FIELD_NUMBER: _ClassVar[int]
+    time: float
+    width: int
+    height: int
+    format: ImageFormat
+    data: bytes
+    def __init__(self, time: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., data: _Optional[bytes] = ...) -> None: ...
+
+class ListModelsRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class ListModelsResponse(_message.Message):
+    __slots__ = ("models",)
+    MODELS_FIELD_NUMBER: _ClassVar[int]
+    models: _containers.RepeatedCompositeFieldContainer[Model]
+    def __init__(self, models: _Optional[_Iterable[_Union[Model, _Mapping]]] = ...) -> None: ...
+
+class Model(_message.Message):
+    __slots__ = ("name", "version", "input_width", "input_height", "gaussians_per_set", "manifest_json")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    INPUT_WIDTH_FIELD_NUMBER: _ClassVar[int]
+    INPUT_HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    GAUSSIANS_PER_SET_FIELD_NUMBER: _ClassVar[int]
+    MANIFEST_JSON_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    version: str
+    input_width: int
+    input_height: int
+    gaussians_per_set: int
+    manifest_json: str
+    def __init__(self, name: _Optional[str] = ..., version: _Optional[str] = ..., input_width: _Optional[int] = ..., input_height: _Optional[int] = ..., gaussians_per_set: _Optional[int] = ..., manifest_json: _Optional[str] = ...) -> None: ...

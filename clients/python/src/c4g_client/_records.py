@@ -1,0 +1,228 @@
+"""The server's records as typed values: a :class:`Clip` (an upload), the served
+:class:`Model`, a refinement :class:`Job`, and an :class:`Export` file.
+
+Each keeps the JSON it came from in ``raw``, so a field a newer server adds is still there
+before this package names it.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Mapping, Optional, Tuple, Union
+
+from ._errors import FormatError
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+TERMINAL_STATES = ("done", "failed", "cancelled")
+
+
+@dataclass(frozen=True)
+class ClipSource:
+    """What was uploaded: ``video`` or ``images``, its frames, size, duration and rate, and
+    what reading it skipped or changed (``warnings``)."""
+
+    kind: str
+    frames: int
+    width: int
+    height: int
+    duration: float
+    fps: float
+    warnings: Tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Clip:
+    """An uploaded, encoded clip. ``span`` is the context span: decode and render take times
+    in ``[span[0], span[1]]`` seconds."""
+
+    id: str
+    model: str
+    state: str
+    context_times: Tuple[float, ...]
+    span: Tuple[float, float]
+    source: ClipSource
+    feature_bytes: int
+    created_at: int
+    created: Optional[bool]
+    raw: Dict[str, Any] = field(repr=False, compare=False)
+
+    @classmethod
+    def from_json(cls, body: Mapping[str, Any], created: Optional[bool] = None) -> Clip:
+        try:
+            source = body["source"]
+            return cls(
+                id=body["id"],
+                model=body.get("model", ""),
+                state=body.get("state", ""),
+                context_times=tuple(float(t) for t in body["context_times"]),
+                span=(float(body["span"][0]), float(body["span"][1])),
+                source=ClipSource(
+                    kind=source.get("kind", ""),
+                    frames=int(source.get("frames", 0)),
+                    width=int(source.get("width", 0)),
+                    height=int(source.get("height", 0)),
+                    duration=float(source.get("duration", 0.0)),
+                    fps=float(source.get("fps", 0.0)),
+                    warnings=tuple(source.get("warnings", ())),
+                ),
+                feature_bytes=int(body.get("feature_bytes", 0)),
+                created_at=int(body.get("created_at", 0)),
+                created=body.get("created", created),
+                raw=dict(body),
+            )
+        except (KeyError, TypeError, ValueError, IndexError) as e:
+            raise FormatError(f"not a clip record ({e!r})") from None
+
+
+@dataclass(frozen=True)
+class Model:
+    """The served model package (``GET /v1/models``): its input size, Gaussians per set,
+    renderer and the server's limits."""
+
+    name: str
+    version: str
+    input_width: int
+    input_height: int
+    gaussians_per_set: int
+    renderer: str
+    footprint: str
+    limits: Dict[str, float]
+    raw: Dict[str, Any] = field(repr=False, compare=False)
+
+    @classmethod
+    def from_json(cls, body: Mapping[str, Any]) -> Model:
+        size = body.get("input", {})
+        return cls(
+            name=body.get("name", ""),
+            version=body.get("version", ""),
+            input_width=int(size.get("width", 0)),
+            input_height=int(size.get("height", 0)),
+            gaussians_per_set=int(body.get("gaussians_per_set", 0)),
+            renderer=body.get("renderer", ""),
+            footprint=body.get("footprint", ""),
+            limits=dict(body.get("limits", {})),
+            raw=dict(body),
+        )
+
+
+@dataclass(frozen=True)
+class JobProgress:
+    """Where a running job is: ``step`` of ``steps`` in ``stage`` (``denoising``, ...)."""
+
+    step: int
+    steps: int
+    stage: str
+
+    @property
+    def fraction(self) -> float:
+        return self.step / self.steps if self.steps else 0.0
+
+
+@dataclass(frozen=True)
+class Job:
+    """A refinement job's record (``GET /v1/jobs/{id}``, and every job event)."""
+
+    id: str
+    clip_id: str
+    state: str
+    attempt: int
+    max_attempts: int
+    worker: Optional[str]
+    progress: Optional[JobProgress]
+    error: Optional[str]
+    history: Tuple[str, ...]
+    result_frames: int
+    seconds: Optional[float]
+    cancel_requested: bool
+    raw: Dict[str, Any] = field(repr=False, compare=False)
+
+    @property
+    def is_terminal(self) -> bool:
+        """In a state the job never leaves: ``done``, ``failed`` or ``cancelled``."""
+        return self.state in TERMINAL_STATES
+
+    @property
+    def is_done(self) -> bool:
+        """The result is stored."""
+        return self.state == "done"
+
+    @classmethod
+    def from_json(cls, body: Mapping[str, Any]) -> Job:
+        try:
+            progress = body.get("progress")
+            return cls(
+                id=body["id"],
+                clip_id=body.get("clip_id", ""),
+                state=body.get("state", ""),
+                attempt=int(body.get("attempt", 0)),
+                max_attempts=int(body.get("max_attempts", 0)),
+                worker=body.get("worker"),
+                progress=(
+                    JobProgress(
+                        int(progress.get("step", 0)), int(progress.get("steps", 0)), progress.get("stage", "")
+                    )
+                    if isinstance(progress, Mapping)
+                    else None
+                ),
+                error=body.get("error"),
+                history=tuple(body.get("history", ())),
+                result_frames=int(body.get("result_frames", 0)),
+                seconds=body.get("seconds"),
+                cancel_requested=bool(body.get("cancel_requested", False)),
+                raw=dict(body),
+            )
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise FormatError(f"not a job record ({e!r})") from None
+
+
+@dataclass(frozen=True)
+class Export:
+    """A 4D file other viewers open (or a one-time ``.ply`` / ``.splat``): the bytes, the name
+    the server suggests, how many sets it holds, and for ``.splatv`` how far the fit strays
+    from the sets (``fit_error``: ``{"max": ..., "rms": ...}``, scene units)."""
+
+    data: bytes
+    format: str
+    filename: Optional[str]
+    sets: Optional[int]
+    fit_error: Optional[Dict[str, float]]
+
+    def save(self, path: PathLike) -> None:
+        """Writes the file as the server sent it."""
+        with open(path, "wb") as f:
+            f.write(self.data)
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def __repr__(self) -> str:
+        return f"Export({self.format}, {len(self.data)} bytes, {self.sets} sets)"
+
+
+def filename_from(disposition: Optional[str]) -> Optional[str]:
+    """The ``filename`` of a ``Content-Disposition`` header."""
+    if not disposition:
+        return None
+    match = re.search(r'filename="([^"]*)"', disposition) or re.search(r"filename=([^;\s]+)", disposition)
+    return match.group(1) if match else None
+
+
+def fit_error_from(header: Optional[str]) -> Optional[Dict[str, float]]:
+    """``X-C4G-Fit-Position-Error: max=..., rms=...`` as a dict."""
+    if not header:
+        return None
+    out: Dict[str, float] = {}
+    for part in header.split(","):
+        name, _, value = part.strip().partition("=")
+        try:
+            out[name] = float(value)
+        except ValueError:
+            continue
+    return out
+
+
+def jobs_from(body: Mapping[str, Any]) -> List[Job]:
+    return [Job.from_json(j) for j in body.get("jobs", [])]

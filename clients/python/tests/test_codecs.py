@@ -1,0 +1,313 @@
+"""The decoders on bytes made here, no server: C4GS, C4GV's pieces, server-sent events, PNG,
+the error table and the option types."""
+
+from __future__ import annotations
+
+import io
+import struct
+
+import httpx
+import numpy as np
+import pytest
+
+import c4g_client as c4g
+from c4g_client import _c4gs, _c4gv, _errors, _http, _png
+from c4g_client._sse import SseDecoder, SseEvent
+
+
+def c4gs_bytes(frames, precision="f32"):
+    """A C4GS payload written from the spec (renderer/src/formats/c4gs.rs), independently of
+    the reader under test."""
+    code, dtype = {"f32": (0, "<f4"), "f16": (1, "<f2")}[precision]
+    n = len(frames[0][1][3]) if frames else 0
+    out = b"C4GS" + struct.pack("<HBBII", 1, code, 0, len(frames), n)
+    for time, columns in frames:
+        out += struct.pack("<d", time)
+        for column in columns:
+            out += np.asarray(column, dtype=np.float32).astype(dtype).tobytes()
+    return out
+
+
+def one_gaussian(x=1.0):
+    return [
+        [x, -2.0, 3.5],
+        [0.1, 0.2, 0.3],
+        [1.0, 0.0, 0.0, 0.0],
+        [0.75],
+        [0.25, 0.5, 1.0],
+    ]
+
+
+def test_c4gs_f32_reads_the_documented_layout_exactly():
+    payload = c4gs_bytes([(0.5, one_gaussian()), (1.0, one_gaussian(4.0))])
+    first, second = _c4gs.decode(payload)
+    assert first.time == 0.5 and second.time == 1.0
+    np.testing.assert_array_equal(first.means, np.float32([[1.0, -2.0, 3.5]]))
+    np.testing.assert_array_equal(first.scales, np.float32([[0.1, 0.2, 0.3]]))
+    np.testing.assert_array_equal(first.quats, np.float32([[1, 0, 0, 0]]))
+    np.testing.assert_array_equal(first.opacities, np.float32([0.75]))
+    np.testing.assert_array_equal(first.colors, np.float32([[0.25, 0.5, 1.0]]))
+    assert second.means[0, 0] == 4.0
+    assert first.means.dtype == np.float32
+
+
+def test_c4gs_f16_widens_each_half_exactly():
+    columns = one_gaussian(1e-3)
+    (s,) = _c4gs.decode(c4gs_bytes([(0.0, columns)], "f16"))
+    expected = np.float32(np.float16(np.float32(1e-3)))
+    assert s.means[0, 0] == expected
+    assert s.scales.dtype == np.float32
+    # 0.1 is not a half: it comes back as the half nearest to it.
+    assert s.scales[0, 0] == np.float32(np.float16(0.1))
+
+
+def test_c4gs_refuses_short_payloads_other_versions_and_magic():
+    payload = c4gs_bytes([(0.5, one_gaussian())])
+    with pytest.raises(c4g.FormatError, match="needs"):
+        _c4gs.decode(payload[:-1])
+    with pytest.raises(c4g.FormatError, match="16-byte header"):
+        _c4gs.decode(payload[:10])
+    with pytest.raises(c4g.FormatError, match="version 2"):
+        _c4gs.decode(payload[:4] + b"\x02" + payload[5:])
+    with pytest.raises(c4g.FormatError, match="not a C4GS"):
+        _c4gs.decode(b"XXXX" + payload[4:])
+    # The reserved byte is ignored, as the spec says.
+    assert len(_c4gs.decode(payload[:7] + b"\x09" + payload[8:])) == 1
+
+
+def test_c4gs_of_no_frames_is_an_empty_list():
+    assert _c4gs.decode(b"C4GS" + struct.pack("<HBBII", 1, 0, 0, 0, 512)) == []
+
+
+def leb128(u: int) -> bytes:
+    out = bytearray()
+    while u >= 0x80:
+        out.append((u & 0x7F) | 0x80)
+        u >>= 7
+    out.append(u)
+    return bytes(out)
+
+
+def zigzag(v: int) -> int:
+    return 2 * v if v >= 0 else -2 * v - 1
+
+
+def test_c4gv_varints_read_zigzag_leb128_of_up_to_five_bytes():
+    values = [0, -1, 1, 63, -64, 64, 2**30 - 1, -(2**30), 2**34 - 1, -(2**34)]
+    body = b"".join(leb128(zigzag(v)) for v in values)
+    assert _c4gv._varints(body, len(values), "t").tolist() == values
+    with pytest.raises(c4g.FormatError, match="cut short"):
+        _c4gv._varints(body[:-1], len(values), "t")
+    with pytest.raises(c4g.FormatError, match="after the last value"):
+        _c4gv._varints(body + b"\x00", len(values), "t")
+    with pytest.raises(c4g.FormatError, match="too long"):
+        _c4gv._varints(b"\x80\x80\x80\x80\x80\x00", 1, "t")
+
+
+def c4gv_stream(
+    cells_per_frame, steps=(1e-3, 1 / 1024, 1 / 4096, 1 / 1023, 1 / 1023), deflate=False, static=None
+):
+    """A C4GV stream written from the spec (renderer/src/formats/c4gv.rs): the Gaussians marked
+    in ``static`` once, in the static record (with their first frame's cells), the others in a
+    keyframe then delta frames: the reader's input, built independently of it."""
+    import zlib
+
+    n = len(cells_per_frame[0])
+    static = static or [False] * n
+    mask = bytearray((n + 7) // 8)
+    for i, s in enumerate(static):
+        if s:
+            mask[i // 8] |= 1 << (i % 8)
+    out = bytearray(b"C4GV" + struct.pack("<HBBII", 1, 0, 0, n, sum(static)) + struct.pack("<5d", *steps))
+    out += mask
+
+    def body(rows):
+        raw = b"".join(leb128(zigzag(int(rows[g][k]))) for k in range(14) for g in range(len(rows)))
+        if deflate:
+            packer = zlib.compressobj(9, zlib.DEFLATED, -15)
+            stored = packer.compress(raw) + packer.flush()
+            if len(stored) < len(raw):
+                return 1, struct.pack("<I", len(raw)) + stored
+        return 0, struct.pack("<I", len(raw)) + raw
+
+    coding, payload = body([c for c, s in zip(cells_per_frame[0], static) if s])
+    out += struct.pack("<BBI", 1, coding, len(payload)) + payload
+    index = []
+    previous = None
+    for f, all_cells in enumerate(cells_per_frame):
+        cells = [c for c, s in zip(all_cells, static) if not s]
+        rows = cells if previous is None else [[a - b for a, b in zip(r, p)] for r, p in zip(cells, previous)]
+        kind = 2 if previous is None else 3
+        coding, payload = body(rows)
+        head = struct.pack("<d", 0.1 * f)
+        index.append((0.1 * f, len(out), kind == 2))
+        out += struct.pack("<BBI", kind, coding, len(head) + len(payload)) + head + payload
+        previous = cells
+    entries = b"".join(struct.pack("<dQB", t, o, k) for t, o, k in index)
+    payload = entries + struct.pack("<Q", len(out)) + b"C4GI"
+    out += struct.pack("<BBI", 4, 0, len(payload)) + payload
+    return bytes(out)
+
+
+def cells(x, log_scale, opacity=512, w=4096):
+    return [x, -x, 7, log_scale, log_scale, log_scale, w, 0, 0, 0, opacity, 100, 200, 300]
+
+
+@pytest.mark.parametrize("deflate", [False, True])
+def test_c4gv_decodes_cells_as_the_spec_tables_say(deflate):
+    frames = [
+        [cells(10, -2048), cells(-5, 0)],
+        [cells(11, -2047), cells(-5, 1)],
+        [cells(13, -2047), cells(-6, 1)],
+    ]
+    stream = c4gv_stream(frames, deflate=deflate)
+    sets = c4g.decode_c4gv(stream)
+    assert [s.time for s in sets] == [0.0, 0.1, 0.2]
+    last = sets[2]
+    np.testing.assert_array_equal(last.means[0], np.float32([13 * 1e-3, -13 * 1e-3, 7 * 1e-3]))
+    assert last.scales[0, 0] == np.float32(np.exp(-2047 / 1024))
+    assert last.scales[1, 0] == np.float32(np.exp(1 / 1024))
+    np.testing.assert_array_equal(last.quats[0], np.float32([1, 0, 0, 0]))
+    assert last.opacities[0] == np.float32(512 / 1023)
+    np.testing.assert_array_equal(last.colors[1], np.float32([100 / 1023, 200 / 1023, 300 / 1023]))
+
+
+def test_c4gv_holds_static_gaussians_in_every_frame():
+    still = cells(3, -100, 700)
+    frames = [[cells(k, -k), still, cells(-k, k), still] for k in range(4)]
+    sets = c4g.decode_c4gv(c4gv_stream(frames, static=[False, True, False, True], deflate=True))
+    moving = c4g.decode_c4gv(c4gv_stream(frames))
+    for s, m in zip(sets, moving):
+        for name in ("means", "quats", "scales", "opacities", "colors"):
+            np.testing.assert_array_equal(getattr(s, name), getattr(m, name))
+    assert sets[3].means[1, 0] == sets[0].means[1, 0] == np.float32(3e-3)
+
+
+def test_c4gv_decodes_the_same_whatever_the_chunking():
+    frames = [[cells(k + g, -k, 500 + g) for g in range(9)] for k in range(5)]
+    stream = c4gv_stream(frames, deflate=True)
+    whole = c4g.decode_c4gv(stream)
+    for size in (1, 7, 64):
+        decoder = c4g.C4GVDecoder()
+        got = []
+        for at in range(0, len(stream), size):
+            decoder.feed(stream[at : at + size])
+            got.extend(decoder.frames())
+        decoder.finish()
+        assert len(got) == len(whole)
+        for a, b in zip(got, whole):
+            for name in ("means", "quats", "scales", "opacities", "colors"):
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert decoder.done and [e.keyframe for e in decoder.index] == [True, False, False, False, False]
+
+
+def test_c4gv_refuses_what_the_spec_forbids():
+    stream = c4gv_stream([[cells(1, 0)], [cells(2, 0)]])
+    with pytest.raises(c4g.StreamInterrupted, match="before its index"):
+        c4g.decode_c4gv(stream[:-5])
+    with pytest.raises(c4g.FormatError, match="after the index"):
+        c4g.decode_c4gv(stream + b"\x00")
+    with pytest.raises(c4g.FormatError, match="not a C4GV"):
+        c4g.decode_c4gv(b"C4GX" + stream[4:])
+    with pytest.raises(c4g.FormatError, match="version"):
+        c4g.decode_c4gv(stream[:4] + b"\x02" + stream[5:])
+    zero_rotation = c4gv_stream([[cells(1, 0, w=0)]])
+    with pytest.raises(c4g.FormatError, match="rotation"):
+        c4g.decode_c4gv(zero_rotation)
+    too_opaque = c4gv_stream([[cells(1, 0, opacity=2000)]])
+    with pytest.raises(c4g.FormatError, match="opacity"):
+        c4g.decode_c4gv(too_opaque)
+
+
+def test_sse_events_survive_any_chunking():
+    text = (
+        '\ufeff: keep-alive\r\nevent: job\r\ndata: {"a":\r\ndata: 1}\r\n\r\n'
+        "event: job\rdata: two\r\rdata: plain\n\n"
+    ).encode()
+    expected = [SseEvent("job", '{"a":\n1}'), SseEvent("job", "two"), SseEvent("message", "plain")]
+    for size in range(1, len(text) + 1):
+        decoder = SseDecoder()
+        events = []
+        for at in range(0, len(text), size):
+            events.extend(decoder.push(text[at : at + size]))
+        assert events == expected, size
+
+
+def test_png_round_trips_and_the_pure_reader_matches_pillow():
+    rng = np.random.default_rng(0)
+    pixels = rng.integers(0, 256, size=(13, 17, 3), dtype=np.uint8)
+    assert (_png.decode(_png.encode(pixels), pure=True) == pixels).all()
+    Image = pytest.importorskip("PIL.Image")
+    # Pillow's encoder picks a filter per row (Sub, Up, Average, Paeth): all of them are read.
+    smooth = (np.add.outer(np.arange(40), np.arange(50))[:, :, None] * [1, 2, 3] % 256).astype(np.uint8)
+    for a in (pixels, smooth, smooth[:, :, :1].copy()):
+        buffer = io.BytesIO()
+        Image.fromarray(a.squeeze()).save(buffer, format="PNG", optimize=True)
+        pure = _png.decode(buffer.getvalue(), pure=True)
+        assert (pure == _png.decode(buffer.getvalue())).all()
+        assert (pure.reshape(a.shape) == a).all()
+
+
+def test_every_kind_of_the_error_table_has_its_class_status_and_grpc_code():
+    table = {
+        "invalid_input": (400, "INVALID_ARGUMENT", c4g.InvalidInput),
+        "unauthorized": (401, "UNAUTHENTICATED", c4g.Unauthorized),
+        "not_found": (404, "NOT_FOUND", c4g.NotFound),
+        "too_large": (413, "RESOURCE_EXHAUSTED", c4g.TooLarge),
+        "unsupported_media": (415, "INVALID_ARGUMENT", c4g.UnsupportedMedia),
+        "unreadable_media": (422, "INVALID_ARGUMENT", c4g.UnreadableMedia),
+        "unsupported": (422, "INVALID_ARGUMENT", c4g.Unsupported),
+        "timed_out": (408, "DEADLINE_EXCEEDED", c4g.TimedOut),
+        "busy": (429, "RESOURCE_EXHAUSTED", c4g.Busy),
+        "not_ready": (503, "UNAVAILABLE", c4g.NotReady),
+        "draining": (503, "UNAVAILABLE", c4g.Draining),
+        "overloaded": (503, "UNAVAILABLE", c4g.Overloaded),
+        "unavailable": (503, "UNAVAILABLE", c4g.Unavailable),
+        "insufficient_storage": (507, "RESOURCE_EXHAUSTED", c4g.InsufficientStorage),
+        "internal": (500, "INTERNAL", c4g.InternalError),
+    }
+    assert set(_errors.KINDS) == set(table)
+    for kind, (status, code, cls) in table.items():
+        assert _errors.KINDS[kind] == (cls, status, code)
+        response = httpx.Response(status, json={"error": "why", "kind": kind}, headers={"retry-after": "3"})
+        error = _http.error_from(response)
+        assert type(error) is cls and (error.status, error.kind, error.message) == (status, kind, "why")
+        assert error.retry_after == 3.0 and isinstance(error, c4g.ApiError)
+        via_grpc = _errors.grpc_api_error(code, "why", kind)
+        assert type(via_grpc) is cls and via_grpc.status == status and via_grpc.grpc_code == code
+    assert issubclass(c4g.Busy, c4g.RetryableError) and not issubclass(c4g.NotFound, c4g.RetryableError)
+
+
+def test_an_answer_that_is_not_the_apis_json_still_raises_with_its_status():
+    error = _http.error_from(httpx.Response(502, text="<html>bad gateway</html>"))
+    assert type(error) is c4g.ApiError and error.kind == "http_502" and "bad gateway" in error.message
+    error = _http.error_from(httpx.Response(404, text=""))
+    assert isinstance(error, c4g.NotFound) and error.message == "Not Found"
+    # A gRPC status refused before the service (no c4g-error-kind) reads by its code.
+    assert isinstance(_errors.grpc_api_error("INVALID_ARGUMENT", "bad bytes", None), c4g.InvalidInput)
+    # A kind this version does not know is still readable.
+    error = _errors.api_error(418, "teapot", "short and stout")
+    assert type(error) is c4g.ApiError and error.kind == "teapot"
+
+
+def test_options_serialise_to_the_apis_json():
+    assert c4g.Keyframes.every(0.5).to_json() == {"every_s": 0.5}
+    assert c4g.Keyframes.count(8).to_json() == {"count": 8}
+    assert c4g.Keyframes.adaptive(0.005, max=32).to_json() == {"tolerance": 0.005, "max": 32}
+    assert c4g.Prune(contribution_px=0.5).to_json() == {"contribution_px": 0.5}
+    assert c4g.Orbit(2.0, 30).to_json() == {"kind": "orbit", "depth": 2.0, "angle_degrees": 30}
+    camera = c4g.Camera(np.eye(4), c4g.Intrinsics(fx=1.0, fy=1.0))
+    assert camera.to_json()["world_to_camera"] == [float(v) for v in np.eye(4).reshape(-1)]
+    assert camera.to_json()["intrinsics"] == {"fx": 1.0, "fy": 1.0, "cx": 0.5, "cy": 0.5}
+    np.testing.assert_array_equal(
+        c4g.Intrinsics().matrix(100, 50), [[87.67, 0, 50], [0, 43.835, 25], [0, 0, 1]]
+    )
+
+
+def test_base_urls_are_normalised_and_segments_encoded():
+    assert _http.normalise_base_url("127.0.0.1:9000") == "http://127.0.0.1:9000"
+    assert (
+        _http.url_for("http://h:1/prefix", ["v1", "clips", "a b/c"]) == "http://h:1/prefix/v1/clips/a%20b%2Fc"
+    )
+    with pytest.raises(ValueError):
+        _http.normalise_base_url("ftp://h")
