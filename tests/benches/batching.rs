@@ -45,7 +45,9 @@ fn main() {
         "c4g-tiny, {} cores; exact single-target decodes; batching wait {wait} ms",
         std::thread::available_parallelism().map_or(0, usize::from)
     );
-    println!("| concurrent | p50 ms off | p50 ms on | req/s off | req/s on | on / off throughput |");
+    println!(
+        "| concurrent | p50 ms off | p50 ms on | req/s off | req/s on | on / off throughput |"
+    );
     println!("|---|---|---|---|---|---|");
     for n in [1usize, 4, 16, 64] {
         let servers = [&plain, &batched];
