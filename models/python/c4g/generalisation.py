@@ -1,0 +1,159 @@
+"""Does a model package reconstruct 4D, or only its training generator? Scores on two worlds.
+
+    python -m c4g.generalisation --package models/c4g-tiny --clips 24 [--strides 2 4] [--out DIR]
+
+The package runs as the service runs it (its ONNX graphs on ONNX Runtime's CPU provider, its
+declared time policy), on clips of two procedural worlds: `train-world` (`c4g.synthetic`'s test
+split: the generator c4g-tiny was trained on, other seeds) and `eval-world` (`c4g.eval_world`:
+written separately, never trained on). Protocol per clip, at 64 x 64 and 10 fps, for each stride s:
+4 context frames s source frames apart (0, s, 2s, 3s), targets half-way between neighbours:
+- interpolated times: the model's render at the target's true camera, against the true frame;
+- novel views: the same times from a camera moved off the path (`c4g.evaluate`'s NOVEL_OFFSET
+  and NOVEL_YAW, in the model's units), against the scene rendered there;
+- baselines: the mean colour of the context frames, the nearest context frame (the earlier of
+  two equidistant ones), the average of the two neighbours; held as they are at novel views.
+Inputs and truths are quantised to 8 bits first, as the service sees them; PSNR from
+`metrics_reference`. Prints a Markdown table of mean PSNR (with the clip count) and writes
+`generalisation.json` to `--out` when given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import torch
+
+from . import eval_world, synthetic
+from .evaluate import novel_pose, quantise
+from .metrics_reference import psnr
+from .raster_fast import render_batch
+from .time_policy import normalise_batch
+
+WORLDS = ("train-world", "eval-world")
+METHODS = ("model", "mean colour", "nearest context frame", "blend of neighbours")
+
+
+class Package:
+    """A package's encoder and decoder on ONNX Runtime (CPU), as the engine runs them."""
+
+    def __init__(self, path: Path):
+        self.manifest = json.loads((path / "model.json").read_text())
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = 0
+        cpu = ["CPUExecutionProvider"]
+        self.encoder = ort.InferenceSession(str(path / "encoder.onnx"), options, providers=cpu)
+        self.decoder = ort.InferenceSession(str(path / "decoder.onnx"), options, providers=cpu)
+        projection = path / "context_projection.onnx"
+        self.projection = ort.InferenceSession(str(projection), options, providers=cpu) if projection.exists() else None
+        self.policy = self.manifest.get("time_policy", "frame-step")
+        self.size = self.manifest["input"]["width"]
+
+    def gaussians(self, frames_u8: np.ndarray, context_times: list[float], targets: list[float], frame_step: float) -> np.ndarray:
+        """Canonical Gaussians [B, N, 14] at `targets` from context frames [T, H, W, 3] (uint8)."""
+        frames = frames_u8.astype(np.float32).transpose(0, 3, 1, 2) / 255.0 * 2 - 1
+        (features,) = self.encoder.run(None, {"frames": frames})
+        ctx, tgt = normalise_batch(context_times, targets, self.policy, frame_step)
+        feeds = {"features": features, "context_times": ctx.astype(np.float32), "target_times": tgt.astype(np.float32)}
+        if self.projection is not None:
+            (feeds["context_projection"],) = self.projection.run(None, {"features": features})
+        (gaussians,) = self.decoder.run(None, feeds)
+        return gaussians
+
+
+def render_canonical(gaussians: np.ndarray, poses: np.ndarray, size: int) -> np.ndarray:
+    g = torch.from_numpy(gaussians.astype(np.float64))
+    f = synthetic.C4G_FOCAL * size
+    with torch.no_grad():
+        out = render_batch(g[..., 0:3], g[..., 3:6], g[..., 6:10], g[..., 10], g[..., 11:14], (f, f, size / 2, size / 2), torch.from_numpy(poses), size, size)
+    return out["rgb"].clamp(0, 1).numpy()
+
+
+def world_clip(world: str, index: int, frames: int, size: int):
+    """(frames [F, H, W, 3] in [0, 1], depth [F, H, W], world-to-camera [F, 4, 4], a renderer of
+    the same scene from given cameras at given times) for clip `index` of `world`."""
+    times = np.arange(frames) / synthetic.FPS
+    if world == "train-world":
+        scene = synthetic.make_scene(synthetic.SPLITS["test"][index], duration=(frames - 1) / synthetic.FPS)
+        clip = synthetic.render_clip(scene, times, size)
+        again = lambda t, cams: synthetic.render_clip(scene, t, size, cameras=cams).frames  # noqa: E731
+        return clip.frames, clip.depth, clip.world_to_camera, again
+    scene = eval_world.make_scene(index)
+    rgb, depth, w2c = eval_world.render(scene, times, size)
+    again = lambda t, cams: eval_world.render(scene, t, size, cameras=cams)[0]  # noqa: E731
+    return rgb, depth, w2c, again
+
+
+def score_clip(package: Package, world: str, index: int, stride: int) -> dict:
+    size = package.size
+    context = np.arange(4) * stride
+    targets = context[:-1] + stride // 2
+    frames_f, depth, w2c_world, again = world_clip(world, index, int(context[-1]) + 1, size)
+    times = np.arange(len(frames_f)) / synthetic.FPS
+    frames_u8 = quantise(frames_f)
+    frames = frames_u8.astype(np.float32) / 255.0
+    first = depth[0]
+    w2c, scale = synthetic.normalise_to_first_camera(w2c_world, int(context[0]), int(context[-1]), float(np.median(first[first > 0])))
+    novel_model = np.stack([novel_pose(w2c[i]) for i in targets])
+    to_model = np.linalg.inv(w2c_world[0])
+    novel_world = []
+    for p in novel_model:
+        q = p.copy()
+        q[:3, 3] /= scale
+        novel_world.append(q @ np.linalg.inv(to_model))
+    novel_truth = quantise(again(times[targets], np.stack(novel_world))).astype(np.float32) / 255.0
+
+    gaussians = package.gaussians(frames_u8[context], times[context].tolist(), times[targets].tolist(), 1.0 / synthetic.FPS)
+    interp = render_canonical(gaussians, w2c[targets], size)
+    novel = render_canonical(gaussians, novel_model, size)
+    mean_colour = np.broadcast_to(frames[context].mean(axis=(0, 1, 2)), frames[0].shape)
+    before = [frames[t - stride // 2] for t in targets]
+    blend = [(frames[t - stride // 2] + frames[t + stride // 2]) / 2 for t in targets]
+    methods = {"model": (interp, novel), "mean colour": ([mean_colour] * len(targets),) * 2, "nearest context frame": (before,) * 2, "blend of neighbours": (blend,) * 2}
+    return {
+        name: {
+            "interpolated": float(np.mean([psnr(a[k], frames[t]) for k, t in enumerate(targets)])),
+            "novel": float(np.mean([psnr(b[k], novel_truth[k]) for k in range(len(targets))])),
+        }
+        for name, (a, b) in methods.items()
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m c4g.generalisation", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--package", type=Path, required=True)
+    ap.add_argument("--clips", type=int, default=24, help="clips per world")
+    ap.add_argument("--strides", type=int, nargs="+", default=[2, 4], help="source frames between context frames (even)")
+    ap.add_argument("--worlds", nargs="+", default=list(WORLDS), choices=WORLDS)
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args(argv)
+    if any(s % 2 or s < 2 for s in args.strides):
+        ap.error("strides must be even and at least 2 (targets lie half-way between context frames)")
+    package = Package(args.package)
+    results: dict = {}
+    for world in args.worlds:
+        for stride in args.strides:
+            clips = [score_clip(package, world, i, stride) for i in range(args.clips)]
+            results[f"{world}, stride {stride}"] = {
+                name: {view: float(np.mean([c[name][view] for c in clips])) for view in ("interpolated", "novel")} for name in METHODS
+            }
+            print(f"{world}, stride {stride}: done", file=sys.stderr, flush=True)
+    name = package.manifest.get("name", args.package.name)
+    print(f"{name} ({args.package}), {args.clips} clips per world, 64 x 64, 10 fps, 4 context frames; mean PSNR (dB)\n")
+    print("| world, stride | view | " + " | ".join(METHODS) + " |")
+    print("|---|---|" + "---|" * len(METHODS))
+    for key, scores in results.items():
+        for view in ("interpolated", "novel"):
+            print(f"| {key} | {view} | " + " | ".join(f"{scores[m][view]:.2f}" for m in METHODS) + " |")
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "generalisation.json").write_text(json.dumps({"package": str(args.package), "clips": args.clips, "results": results}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,59 @@
+"""The evaluation-only world (c4g.eval_world) and the generalisation harness (c4g.generalisation)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from c4g import eval_world, generalisation, synthetic
+
+TINY = Path(__file__).resolve().parents[2] / "c4g-tiny"
+
+
+def test_a_seed_is_always_the_same_clip_and_seeds_differ():
+    times = np.array([0.0, 0.8, 1.6])
+    a, _, wa = eval_world.render(eval_world.make_scene(3), times, 32)
+    b, _, wb = eval_world.render(eval_world.make_scene(3), times, 32)
+    c, _, _ = eval_world.render(eval_world.make_scene(4), times, 32)
+    assert np.array_equal(a, b) and np.array_equal(wa, wb)
+    assert np.abs(a - c).mean() > 0.02
+
+
+def test_the_world_moves_covers_the_frame_and_spans_its_families():
+    seen = {"family": set(), "motion": set(), "camera": set()}
+    moving = 0
+    for seed in range(40):
+        scene = eval_world.make_scene(seed)
+        seen["camera"].add(scene.camera_kind)
+        for thing in scene.things:
+            seen["family"].add(thing.family)
+            seen["motion"].add(thing.motion)
+        first, last = (scene.gaussians(t)[0] for t in (0.0, scene.duration))
+        moving += np.abs(first - last).max() > 0.05
+    assert seen["family"] == set(eval_world.OBJECT_FAMILIES)
+    assert seen["motion"] == set(eval_world.MOTIONS)
+    assert seen["camera"] == set(eval_world.CAMERAS)
+    assert moving == 40, "every clip has something that moves"
+    rgb, depth, _ = eval_world.render(eval_world.make_scene(0), np.array([0.0]), 32)
+    assert (depth > 0).mean() > 0.8 and rgb.std() > 0.05
+
+
+def test_a_bounce_stays_above_the_ground():
+    scene = next(s for s in map(eval_world.make_scene, range(200)) if any(t.motion == "ballistic" for t in s.things))
+    thing = next(t for t in scene.things if t.motion == "ballistic")
+    heights = [thing.pose(t)[1][1] for t in np.linspace(0, scene.duration, 200)]
+    assert max(heights) <= 1.0 - thing.params["radius"] + 1e-9
+
+
+def test_the_harness_scores_the_default_package_and_its_baselines_on_both_worlds():
+    package = generalisation.Package(TINY)
+    for world in generalisation.WORLDS:
+        scores = generalisation.score_clip(package, world, 0, 2)
+        assert set(scores) == set(generalisation.METHODS)
+        for view in ("interpolated", "novel"):
+            values = [scores[m][view] for m in generalisation.METHODS]
+            assert all(np.isfinite(v) and 5 < v < 60 for v in values), scores
+        # Two neighbours averaged beat the mean colour at the frames between them.
+        assert scores["blend of neighbours"]["interpolated"] > scores["mean colour"]["interpolated"]
+    assert synthetic.FPS == eval_world.FPS
