@@ -78,7 +78,9 @@ def world_clip(world: str, index: int, frames: int, size: int):
     the same scene from given cameras at given times) for clip `index` of `world`."""
     times = np.arange(frames) / synthetic.FPS
     if world == "train-world":
-        scene = synthetic.make_scene(synthetic.SPLITS["test"][index], duration=(frames - 1) / synthetic.FPS)
+        # The test split's scenes as `c4g.evaluate` renders them (their 1 s paths; a window past
+        # 1 s carries the camera's path on at its pace).
+        scene = synthetic.make_scene(synthetic.SPLITS["test"][index])
         clip = synthetic.render_clip(scene, times, size)
         again = lambda t, cams: synthetic.render_clip(scene, t, size, cameras=cams).frames  # noqa: E731
         return clip.frames, clip.depth, clip.world_to_camera, again
