@@ -178,6 +178,11 @@ pub struct Config {
     /// results (`server/src/jobs/postgres.rs`).
     #[arg(long, env = "C4G_JOB_DATABASE", hide_env_values = true)]
     pub job_database: Option<Secret>,
+    /// Hours a job that ended (done, failed, cancelled) is kept, with its result, after its last
+    /// change; then it is deleted, so the job list and the stored results do not grow without
+    /// end. 0 keeps every job.
+    #[arg(long, env = "C4G_JOB_RETENTION_H", default_value_t = 168.0)]
+    pub job_retention_h: f64,
     /// Attempts a refinement job gets (a lost worker or a retryable failure uses one).
     #[arg(long, env = "C4G_JOB_ATTEMPTS", default_value_t = 2)]
     pub job_attempts: u32,
@@ -336,6 +341,13 @@ impl Config {
             FootprintArg::Ellipse => Footprint::Ellipse,
             FootprintArg::Tiles3dgs => Footprint::Tiles3dgs,
         }
+    }
+
+    /// How long a job that ended is kept (`None`: for ever).
+    pub fn job_retention(&self) -> Option<Duration> {
+        (self.job_retention_h > 0.0).then(|| {
+            Duration::try_from_secs_f64(self.job_retention_h * 3600.0).unwrap_or(Duration::MAX)
+        })
     }
 
     /// How long an exact decode waits for company (`C4G_BATCH_WAIT_MS`; its default depends on

@@ -114,14 +114,29 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
     loading.await??;
     // Jobs whose worker went quiet go back to the queue (or fail) within a second of their
     // lease; the queue's depth is counted anew (for a shared store, the cluster's: what a worker
-    // autoscaler reads).
+    // autoscaler reads); jobs past their retention are deleted.
     if let Ok(service) = state.service() {
-        let service = service.clone();
+        let (service, retention) = (service.clone(), config.job_retention());
         tokio::spawn(async move {
             let mut tick = tokio::time::interval(std::time::Duration::from_millis(500));
             let mut failing = false;
-            loop {
+            for round in 0u64.. {
                 tick.tick().await;
+                // Once a minute: jobs that ended longer ago than C4G_JOB_RETENTION_H, and the
+                // videos made of them, are deleted.
+                if let Some(age) = retention
+                    && round % 120 == 0
+                {
+                    match service.jobs.prune(age).await {
+                        Ok(0) => {}
+                        Ok(n) => tracing::info!(jobs = n, "deleted jobs past their retention"),
+                        Err(e) => tracing::warn!("cannot delete old jobs: {e}"),
+                    }
+                    let videos = c4g_server::jobs::prune_videos(&service.job_videos, age);
+                    if videos > 0 {
+                        tracing::info!(videos, "deleted refined videos past the job retention");
+                    }
+                }
                 // Said once when it starts failing and once when it recovers, not twice a second.
                 match service.jobs.reap().await {
                     Err(e) if !failing => {

@@ -84,6 +84,7 @@ both_stores!(
     a_follower_sees_every_change_wherever_it_is_made,
     a_retryable_failure_is_retried_and_a_final_one_is_not,
     the_queue_counts_what_waits_and_lists_oldest_first,
+    jobs_that_ended_are_pruned_with_their_results_and_the_others_kept,
 );
 
 /// A lost worker's job is retried, then failed once its attempts are spent; the late worker's
@@ -334,6 +335,87 @@ async fn the_queue_counts_what_waits_and_lists_oldest_first(a: &dyn JobQueue, b:
     assert_eq!(
         a.get("job-none").await.unwrap_err().kind(),
         ServiceErrorKind::NotFound
+    );
+}
+
+/// Pruning (`C4G_JOB_RETENTION_H`) deletes the jobs that ended, done, failed or cancelled, with
+/// their results, and never a queued or running one; a younger cutoff keeps them all.
+async fn jobs_that_ended_are_pruned_with_their_results_and_the_others_kept(
+    a: &dyn JobQueue,
+    b: &dyn JobQueue,
+) {
+    let mut ids = Vec::new();
+    for _ in 0..5 {
+        ids.push(a.create("clip", serde_json::json!({})).await.unwrap().id);
+    }
+    let taken: Vec<_> = futures_util::future::join_all((0..4).map(|k| {
+        let store = if k % 2 == 0 { a } else { b };
+        async move {
+            store
+                .take(&format!("w{k}"), Duration::ZERO)
+                .await
+                .unwrap()
+                .unwrap()
+        }
+    }))
+    .await;
+    let (done, failed, cancelled, running) = (&taken[0], &taken[1], &taken[2], &taken[3]);
+    a.finish(
+        &done.id,
+        done.worker.as_deref().unwrap(),
+        vec![vec![1]],
+        1.0,
+    )
+    .await
+    .unwrap();
+    b.fail(
+        &failed.id,
+        failed.worker.as_deref().unwrap(),
+        "bad",
+        false,
+        false,
+    )
+    .await
+    .unwrap();
+    a.cancel(&cancelled.id).await.unwrap();
+    b.fail(
+        &cancelled.id,
+        cancelled.worker.as_deref().unwrap(),
+        "cancelled",
+        false,
+        true,
+    )
+    .await
+    .unwrap();
+    // Ended just now: a day's retention keeps them.
+    assert_eq!(b.prune(Duration::from_secs(86_400)).await.unwrap(), 0);
+    assert_eq!(a.list().await.unwrap().len(), 5);
+    assert_eq!(b.prune(Duration::ZERO).await.unwrap(), 3);
+    let left: Vec<String> = a.list().await.unwrap().into_iter().map(|r| r.id).collect();
+    let queued = ids
+        .iter()
+        .find(|id| !taken.iter().any(|t| &t.id == *id))
+        .unwrap();
+    let mut want = vec![running.id.clone(), queued.clone()];
+    want.sort();
+    let mut got = left.clone();
+    got.sort();
+    assert_eq!(got, want, "only the queued and the running job are left");
+    for gone in [&done.id, &failed.id, &cancelled.id] {
+        assert_eq!(
+            b.get(gone).await.unwrap_err().kind(),
+            ServiceErrorKind::NotFound
+        );
+    }
+    assert_eq!(
+        a.result_frame(&done.id, 0).await.unwrap_err().kind(),
+        ServiceErrorKind::NotFound
+    );
+    // The running job still reports and finishes.
+    assert!(
+        !b.progress(&running.id, running.worker.as_deref().unwrap(), progress())
+            .await
+            .unwrap()
     );
 }
 

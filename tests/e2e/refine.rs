@@ -1,8 +1,8 @@
 //! Refinement end to end: `c4g-server` and `c4g-refiner` as processes on loopback, with the tiny
 //! Wan-VACE fixture package. A rendered trajectory of a clip is refined; a worker killed mid-job
 //! leaves the job queued for another attempt (never stuck in `running`), a worker sent SIGTERM
-//! hands its job back without spending an attempt, and a cancelled job stops at its worker's next
-//! step.
+//! hands its job back without spending an attempt, a cancelled job stops at its worker's next
+//! step, and jobs that ended are deleted once their retention has passed.
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
 use std::io::{BufRead, BufReader};
@@ -378,4 +378,54 @@ fn terminate(worker: &mut RefinerWorker) -> Duration {
     };
     assert!(status.success(), "{status:?}");
     signalled.elapsed()
+}
+
+/// `C4G_JOB_RETENTION_H`: a job that ended is deleted once its retention has passed (the server
+/// looks when it starts and once a minute), a queued one never; the default keeps it a week.
+#[test]
+fn jobs_that_ended_are_deleted_after_their_retention_and_queued_ones_are_kept() {
+    if !ort_available() {
+        return;
+    }
+    let server = Server::start(&[]);
+    let clip = upload_synthetic(&server);
+    let client = Client::new();
+    let submit = || -> String {
+        let job: Value = client
+            .post(server.at(&format!("/v1/clips/{clip}/refine")))
+            .json(&json!({"steps": 2}))
+            .send()
+            .unwrap()
+            .json()
+            .unwrap();
+        job["id"].as_str().unwrap().to_owned()
+    };
+    let (ended, queued) = (submit(), submit());
+    let cancelled = client
+        .post(server.at(&format!("/v1/jobs/{ended}/cancel")))
+        .send()
+        .unwrap();
+    assert_eq!(cancelled.status(), 200);
+    let store = server.stop();
+    // A week's retention (the default) keeps it across a restart.
+    let server = Server::start_in(store, &[]);
+    assert_eq!(job(&client, &server, &ended)["state"], "cancelled");
+    std::thread::sleep(Duration::from_millis(1500));
+    let store = server.stop();
+    // A second's retention: deleted when the server starts; the queued job stays.
+    let server = Server::start_in(store, &["--job-retention-h", "0.0002"]);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let status = client
+            .get(server.at(&format!("/v1/jobs/{ended}")))
+            .send()
+            .unwrap()
+            .status();
+        if status == 404 {
+            break;
+        }
+        assert!(Instant::now() < deadline, "the ended job was not deleted");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert_eq!(job(&client, &server, &queued)["state"], "queued");
 }

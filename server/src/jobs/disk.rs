@@ -390,6 +390,27 @@ impl JobQueue for DiskJobs {
         Ok(expired.len())
     }
 
+    async fn prune(&self, age: Duration) -> Result<usize, ServiceError> {
+        let cutoff = now().saturating_sub(age.as_secs());
+        let doomed: Vec<String> = self
+            .lock()
+            .jobs
+            .values()
+            .filter(|e| e.record.state.is_terminal() && e.record.updated_at <= cutoff)
+            .map(|e| e.record.id.clone())
+            .collect();
+        for id in &doomed {
+            // Out of the index first: a restart finds either the whole job or a directory it
+            // removes as a leftover (renamed to a dot-name before it is deleted).
+            self.lock().jobs.remove(id);
+            let (dir, hidden) = (self.dir.join(id), self.dir.join(format!(".deleted-{id}")));
+            std::fs::rename(&dir, &hidden)
+                .and_then(|()| std::fs::remove_dir_all(&hidden))
+                .map_err(|e| ServiceError::storage(format!("cannot delete job {id}"), &e))?;
+        }
+        Ok(doomed.len())
+    }
+
     async fn result_frame(&self, id: &str, k: usize) -> Result<Vec<u8>, ServiceError> {
         let path = self.result_dir(id).join(format!("{k:04}.png"));
         match tokio::fs::read(&path).await {

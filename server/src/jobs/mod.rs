@@ -209,6 +209,9 @@ pub trait JobQueue: Send + Sync {
     async fn reap(&self) -> Result<usize, ServiceError>;
     /// Refined frame `k` (PNG) of a done job.
     async fn result_frame(&self, id: &str, k: usize) -> Result<Vec<u8>, ServiceError>;
+    /// Deletes the jobs that ended (done, failed, cancelled) more than `age` ago, with their
+    /// results; how many. Queued and running jobs are never touched.
+    async fn prune(&self, age: Duration) -> Result<usize, ServiceError>;
 }
 
 /// Where a server keeps its jobs: `C4G_JOB_DATABASE` when set, else the store directory `dir`.
@@ -234,6 +237,25 @@ pub fn open(
     };
     tracing::info!(store = jobs.kind(), "refinement jobs");
     Ok(jobs)
+}
+
+/// Removes the refined videos in `dir` (a replica's cache of them) not touched for `age`: their
+/// jobs are pruned, or will be, and any replica can make a video again while its job exists.
+pub fn prune_videos(dir: &Path, age: Duration) -> usize {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    let old = |e: &std::fs::DirEntry| {
+        e.metadata()
+            .and_then(|m| m.modified())
+            .ok()
+            .and_then(|t| t.elapsed().ok())
+            .is_some_and(|elapsed| elapsed >= age)
+    };
+    entries
+        .flatten()
+        .filter(|e| old(e) && std::fs::remove_file(e.path()).is_ok())
+        .count()
 }
 
 fn not_found(id: &str) -> ServiceError {

@@ -461,6 +461,24 @@ impl JobQueue for PostgresJobs {
         Ok(rows.len())
     }
 
+    async fn prune(&self, age: Duration) -> Result<usize, ServiceError> {
+        let cutoff =
+            i64::try_from(crate::store::now().saturating_sub(age.as_secs())).unwrap_or(i64::MAX);
+        let client = self.pool.get().await.map_err(db)?;
+        // The records' own clock (`updated_at`, Unix seconds), as on disk; frames go with their
+        // job (ON DELETE CASCADE).
+        let deleted = client
+            .execute(
+                "DELETE FROM c4g_jobs WHERE model = $1
+                   AND state IN ('done', 'failed', 'cancelled')
+                   AND (record->>'updated_at')::bigint <= $2",
+                &[&self.model, &cutoff],
+            )
+            .await
+            .map_err(db)?;
+        Ok(usize::try_from(deleted).unwrap_or(usize::MAX))
+    }
+
     async fn result_frame(&self, id: &str, k: usize) -> Result<Vec<u8>, ServiceError> {
         let k = i32::try_from(k).map_err(|_| not_found(id))?;
         let client = self.pool.get().await.map_err(db)?;
