@@ -176,20 +176,28 @@ impl SharedClips {
         }
     }
 
-    /// The ids under the model's prefix: whole clips, and some being written or deleted (their
-    /// records say which).
+    /// The ids of the whole clips under the model's prefix: those whose record is there (one
+    /// listing of the objects, no read of any).
     pub async fn ids(&self) -> Result<Vec<String>, ServiceError> {
-        let listed = self
+        use futures_util::TryStreamExt;
+        let depth = self.root.parts().count();
+        let objects: Vec<object_store::ObjectMeta> = self
             .store
-            .list_with_delimiter(Some(&self.root))
+            .list(Some(&self.root))
+            .try_collect()
             .await
             .map_err(|e| {
                 ServiceError::Unavailable(format!("the shared store cannot list its clips: {e}"))
             })?;
-        Ok(listed
-            .common_prefixes
+        Ok(objects
             .iter()
-            .filter_map(|p| p.filename().map(str::to_owned))
+            .filter_map(|meta| {
+                let parts: Vec<_> = meta.location.parts().skip(depth).collect();
+                match parts.as_slice() {
+                    [id, record] if record.as_ref() == "clip.json" => Some(id.as_ref().to_owned()),
+                    _ => None,
+                }
+            })
             .collect())
     }
 

@@ -120,6 +120,9 @@ struct State {
     inflight: HashMap<String, Arc<OnceCell<Arc<ClipRecord>>>>,
     /// Clips held here that are in the shared store, and when they were last seen there.
     shared_seen: HashMap<String, Instant>,
+    /// Records of shared clips not held here, as listed: a record never changes (ids are content
+    /// addresses), so each is read once; the shared store's list says which still exist.
+    shared_records: HashMap<String, Arc<ClipRecord>>,
 }
 
 fn lock(state: &Mutex<State>) -> MutexGuard<'_, State> {
@@ -168,6 +171,7 @@ impl ClipStore {
                 cached_bytes: 0,
                 inflight: HashMap::new(),
                 shared_seen: HashMap::new(),
+                shared_records: HashMap::new(),
             })),
             shared: None,
         })
@@ -253,20 +257,37 @@ impl ClipStore {
             .into_iter()
             .filter(|id| is_clip_id(id) && !held.contains(id))
             .collect();
-        // Records only (a few hundred bytes each), a few at a time.
-        let records: Vec<Result<Option<ClipRecord>, ServiceError>> = futures_util::stream::iter(
+        let (known, unknown): (Vec<String>, Vec<String>) = {
+            let state = self.lock();
             others
+                .into_iter()
+                .partition(|id| state.shared_records.contains_key(id))
+        };
+        // Records only (a few hundred bytes each), a few at a time, and each once.
+        let records: Vec<Result<Option<ClipRecord>, ServiceError>> = futures_util::stream::iter(
+            unknown
                 .into_iter()
                 .map(|id| async move { shared.record(&id).await }),
         )
         .buffer_unordered(16)
         .collect()
         .await;
+        let mut state = self.lock();
+        let listed: std::collections::HashSet<&String> = known.iter().collect();
+        state.shared_records.retain(|id, _| listed.contains(id));
+        for id in &known {
+            all.extend(state.shared_records.get(id).cloned());
+        }
         for record in records {
             if let Some(record) = record? {
-                all.push(Arc::new(record));
+                let record = Arc::new(record);
+                state
+                    .shared_records
+                    .insert(record.id.clone(), record.clone());
+                all.push(record);
             }
         }
+        drop(state);
         all.sort_by(|a, b| (a.created_at, &a.id).cmp(&(b.created_at, &b.id)));
         Ok(all)
     }

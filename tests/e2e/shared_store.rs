@@ -208,15 +208,22 @@ fn share_and_check(shared: &Shared) {
         "two replicas encoded one clip"
     );
 
-    // Deleted on A: gone from the shared store, so a third replica never finds it, and B, which
-    // fetched it, stops serving it once it looks again (RECHECK, 5 s).
+    // A third replica, holding nothing, lists both clips from the shared store.
+    let other = both_a.1["id"].as_str().unwrap();
+    let store_c = tempfile::tempdir().unwrap();
+    let c = replica(store_c.path(), shared);
+    let mut both = vec![id.clone(), other.to_owned()];
+    both.sort();
+    let mut on_c = listed(&c);
+    on_c.sort();
+    assert_eq!(on_c, both);
+    // Deleted on A: gone from the shared store, so C never finds it nor lists it again, and B,
+    // which fetched it, stops serving it once it looks again (RECHECK, 5 s).
     let deleted = Client::new()
         .delete(a.at(&format!("/v1/clips/{id}")))
         .send()
         .unwrap();
     assert_eq!(deleted.status(), 204);
-    let store_c = tempfile::tempdir().unwrap();
-    let c = replica(store_c.path(), shared);
     let (status, _) = decode(&c, &id);
     assert_eq!(status, 404);
     let deadline = Instant::now() + Duration::from_secs(15);
@@ -234,7 +241,6 @@ fn share_and_check(shared: &Shared) {
     assert_eq!(gone.status(), 404);
     // The other clip is still everyone's, and every replica lists it, also C, which holds
     // nothing yet.
-    let other = both_a.1["id"].as_str().unwrap();
     for replica in [&a, &b, &c] {
         assert_eq!(listed(replica), [other.to_owned()]);
     }
