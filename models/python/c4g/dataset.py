@@ -2,12 +2,14 @@
 
     python -m c4g.dataset --split train --count 2400 --out data/synthetic
     python -m c4g.dataset --split validation --count 64 --out data/synthetic
+    python -m c4g.dataset --world 2 --split train --count 2400 --out data/world2
 
 Each split is one `<split>.npz`: for C clips of `synthetic.FRAMES` frames at `synthetic.SIZE`,
 frames uint8 [C, F, H, W, 3], expected depth float16 [C, F, H, W] (world units), dynamic masks
 bool [C, F, H, W], world-to-camera poses float64 [C, F, 4, 4], media times float64 [C, F] and the
-scene seeds [C]. Clip i of a split is the scene of seed `SPLITS[split][i]`, so a split is a pure
-function of its name and count.
+scene seeds [C] and the world [] (`synthetic.make_scene`'s `world`: 1, c4g-tiny's, or 2, the wider
+one). Clip i of a split is the scene of seed `SPLITS[split][i]`, so a split is a pure function of
+its world, name and count.
 
 A training sample is a window of 2T - 1 consecutive frames: the even ones are the context (stride 2,
 as in the paper), the odd ones the targets between them. Cameras and depths are expressed in the
@@ -35,20 +37,22 @@ def _one_thread() -> None:
     torch.set_num_threads(1)
 
 
-def _render(seed: int) -> tuple:
-    clip = render_clip(make_scene(seed), np.arange(FRAMES) / FPS, SIZE)
+def _render(job: tuple[int, int]) -> tuple:
+    seed, world = job
+    clip = render_clip(make_scene(seed, world=world), np.arange(FRAMES) / FPS, SIZE)
     frames = np.round(clip.frames * 255).astype(np.uint8)
     return frames, clip.depth.astype(np.float16), clip.dynamic_mask, clip.world_to_camera, clip.times
 
 
-def generate(split: str, count: int, out: Path, processes: int = 2) -> Path:
+def generate(split: str, count: int, out: Path, processes: int = 2, world: int = 1) -> Path:
     seeds = list(SPLITS[split][:count])
+    jobs = [(s, world) for s in seeds]
     if processes > 1:
         # Spawned, not forked: a fork would inherit the parent's torch and Numba thread pools.
         with get_context("spawn").Pool(processes, initializer=_one_thread) as pool:
-            rows = pool.map(_render, seeds, chunksize=8)
+            rows = pool.map(_render, jobs, chunksize=8)
     else:
-        rows = [_render(s) for s in seeds]
+        rows = [_render(j) for j in jobs]
     out.mkdir(parents=True, exist_ok=True)
     path = out / f"{split}.npz"
     np.savez(
@@ -59,6 +63,7 @@ def generate(split: str, count: int, out: Path, processes: int = 2) -> Path:
         world_to_camera=np.stack([r[3] for r in rows]),
         times=np.stack([r[4] for r in rows]),
         seeds=np.asarray(seeds, dtype=np.int64),
+        world=np.asarray(world),
     )
     return path
 
@@ -126,8 +131,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--count", type=int, required=True)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--processes", type=int, default=2)
+    ap.add_argument("--world", type=int, choices=[1, 2], default=1, help="1: c4g-tiny's world; 2: the wider one")
     args = ap.parse_args(argv)
-    path = generate(args.split, args.count, args.out, args.processes)
+    path = generate(args.split, args.count, args.out, args.processes, args.world)
     print(f"wrote {path} ({args.count} clips)")
     return 0
 

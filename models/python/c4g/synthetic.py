@@ -6,6 +6,15 @@ and a camera that orbits, pans, dollies or stays still. Everything is a function
 can be rendered at any timestamp and from any camera: context frames, target frames between them,
 and novel views.
 
+`world=2` (`make_scene(seed, world=2)`) is the wider training world of c4g-tiny v2; `world=1`
+(the default) stays the world c4g-tiny was trained on, unchanged, so that model remains
+reproducible. World 2 adds object families (thin sticks and cards, articulated objects bending at
+a joint, more squash-and-stretch), motion families (ballistic throws that bounce on the floor,
+turns about an axis off the object, stop-and-go moves; the harmonic paths stay), a handheld
+camera (a still or panning camera with shake), textures (value noise at several scales, and
+photographs from scikit-image's CC0 sample images), and light that changes over the clip.
+`c4g.eval_world` is a separate world used only to evaluate.
+
 Deterministic from a seed; the split is by seed range (`SPLITS`). World units are arbitrary; the
 model's convention (first context camera at the origin, distance between the first and last context
 cameras = 1) is applied per sample by `normalise_to_first_camera`, with a stated rule when the camera
@@ -102,28 +111,74 @@ class MovingObject:
     spin_rate: float
     deform: float  # 0: rigid; otherwise the amplitude of a squash-and-stretch along local y
     deform_rate: float
+    # World 2: how the centre moves ("harmonic": the path above; "ballistic", "pivot",
+    # "stopgo": `motion_params`), and a joint the object bends at (None: rigid).
+    motion: str = "harmonic"
+    motion_params: dict = field(default_factory=dict)
+    joint: dict | None = None
+
+    def _centre(self, t: float) -> np.ndarray:
+        p = self.motion_params
+        if self.motion == "ballistic":
+            # Thrown, falling under gravity (world y points down) onto the floor, bouncing with
+            # 60% of its speed; horizontal drift at constant speed.
+            g, floor = 5.0, p["floor"]
+            tau, y, v = t, float(self.centre[1]), float(p["vy"])
+            for _ in range(32):
+                hit = (-v + np.sqrt(v * v + 2 * g * max(floor - y, 0.0))) / g
+                if hit >= tau or hit <= 1e-6:
+                    break
+                tau, y, v = tau - hit, floor, -0.6 * (v + g * hit)
+            y = min(y + v * tau + 0.5 * g * tau * tau, floor)
+            return self.centre + np.array([p["vx"] * t, y - self.centre[1], p["vz"] * t])
+        if self.motion == "pivot":
+            # Swept round an axis through a point beside it.
+            return p["pivot"] + _axis_angle(p["axis"], p["rate"] * t) @ (self.centre - p["pivot"])
+        if self.motion == "stopgo":
+            # Eased legs between waypoints, each followed by a pause.
+            legs, per = p["waypoints"], p["leg"]
+            k = min(int(t // per), len(legs) - 2)
+            u = min(max((t - k * per) / (0.6 * per), 0.0), 1.0)
+            u = u * u * (3 - 2 * u)
+            return legs[k] * (1 - u) + legs[k + 1] * u
+        harmonics = np.sin(self.path_frequency[None, :] * t * np.arange(1, 4)[:, None] + self.path_phase)
+        return self.centre + (self.path_amplitude * harmonics).sum(axis=0)
 
     def transform(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rotation [3, 3], translation [3], per-axis local stretch [3]) at time t."""
-        harmonics = np.sin(self.path_frequency[None, :] * t * np.arange(1, 4)[:, None] + self.path_phase)
-        offset = (self.path_amplitude * harmonics).sum(axis=0)
         stretch = np.ones(3)
         if self.deform:
             s = 1 + self.deform * np.sin(self.deform_rate * t)
             stretch = np.array([1 / np.sqrt(s), s, 1 / np.sqrt(s)])
-        return _axis_angle(self.spin_axis, self.spin_rate * t), self.centre + offset, stretch
+        return _axis_angle(self.spin_axis, self.spin_rate * t), self._centre(t), stretch
+
+    def _bent(self, local: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """Local points past the joint turned about it at time t: (points, the turn, which)."""
+        if self.joint is None:
+            return local, None, np.zeros(len(local), bool)
+        j = self.joint
+        beyond = (local - j["pivot"]) @ j["along"] > 0
+        turn = _axis_angle(j["axis"], j["amplitude"] * np.sin(j["rate"] * t + j["phase"]))
+        out = local.copy()
+        out[beyond] = (local[beyond] - j["pivot"]) @ turn.T + j["pivot"]
+        return out, turn, beyond
 
     def gaussians(self, t: float) -> GaussianBlock:
         rot, trans, stretch = self.transform(t)
         b = self.block
-        local = b.means * stretch
+        local, turn, beyond = self._bent(b.means, t)
+        rotations = b.rotations
+        if turn is not None:
+            rotations = rotations.copy()
+            rotations[beyond] = turn @ rotations[beyond]
+        local = local * stretch
         return GaussianBlock(
-            local @ rot.T + trans, b.scales * stretch, rot @ b.rotations, b.opacities, b.colors
+            local @ rot.T + trans, b.scales * stretch, rot @ rotations, b.opacities, b.colors
         )
 
     def points(self, local: np.ndarray, t: float) -> np.ndarray:
         rot, trans, stretch = self.transform(t)
-        return (local * stretch) @ rot.T + trans
+        return (self._bent(local, t)[0] * stretch) @ rot.T + trans
 
 
 @dataclass
@@ -137,6 +192,7 @@ class Scene:
     normalised_intrinsics: tuple[float, float, float, float]
     camera_path: dict = field(default_factory=dict)
     track_points: list[np.ndarray] = field(default_factory=list)  # per object, local points [K, 3]
+    light: tuple[float, float] = (1.0, 1.0)  # colour gain at the start and the end (world 2)
 
     def camera(self, t: float) -> np.ndarray:
         """World-to-camera [4, 4] at time t."""
@@ -153,11 +209,21 @@ class Scene:
         if self.camera_motion == "dolly":
             eye = p["eye"] + p["travel"] * s * p["direction"]
             return _look_at(eye, eye + p["direction"])
+        if self.camera_motion == "handheld":
+            # A slow turn with the hand's shake on the position and the aim.
+            shake = sum(a * np.sin(f * t + ph) for a, f, ph in p["shake"])
+            yaw = p["sweep"] * (s - 0.5)
+            direction = np.array([np.sin(yaw), 0.05, np.cos(yaw)])
+            return _look_at(p["eye"] + shake, p["eye"] + shake + direction + 2 * shake)
         return _look_at(p["eye"], p["eye"] + p["direction"])
 
     def gaussians(self, t: float) -> GaussianBlock:
         blocks = [self.background] + [o.gaussians(t) for o in self.objects]
-        return GaussianBlock(*(np.concatenate([getattr(b, f) for b in blocks]) for f in ("means", "scales", "rotations", "opacities", "colors")))
+        out = GaussianBlock(*(np.concatenate([getattr(b, f) for b in blocks]) for f in ("means", "scales", "rotations", "opacities", "colors")))
+        if self.light != (1.0, 1.0):
+            gain = self.light[0] + (self.light[1] - self.light[0]) * t / self.duration
+            out.colors = np.clip(out.colors * gain, 0, 1)
+        return out
 
     def dynamic_flags(self) -> np.ndarray:
         """True for the Gaussians of moving objects, in the order of `gaussians(t)`."""
@@ -171,7 +237,53 @@ class Scene:
         return np.concatenate([o.points(p, t) for o, p in zip(self.objects, self.track_points)])
 
 
-def _surface(rng, origin, u_axis, v_axis, size_u, size_v, spacing) -> GaussianBlock:
+# scikit-image's sample photographs released under CC0 (their docstrings say so), shipped in its
+# wheel: textures from the real world for world 2.
+PHOTOS = ("coffee", "chelsea", "brick", "grass", "gravel")
+
+
+def _photo_texture(rng: np.random.Generator, uv: np.ndarray) -> np.ndarray:
+    """Colours [K, 3] at uv [K, 2] from a random window of a random photograph (a grey one
+    tinted)."""
+    from skimage import data
+
+    image = getattr(data, PHOTOS[int(rng.integers(len(PHOTOS)))])().astype(np.float64) / 255.0
+    if image.ndim == 2:
+        image = image[..., None] * rng.uniform(0.4, 1.0, 3)
+    h, w = image.shape[:2]
+    span = rng.uniform(0.2, 0.9)
+    x0, y0 = rng.uniform(0, 1 - span, 2)
+    cols = np.clip(((x0 + span * uv[:, 0]) * (w - 1)).astype(int), 0, w - 1)
+    rows = np.clip(((y0 + span * uv[:, 1]) * (h - 1)).astype(int), 0, h - 1)
+    return image[rows, cols]
+
+
+def _noise_texture(rng: np.random.Generator, uv: np.ndarray) -> np.ndarray:
+    """Colours [K, 3] at uv [K, 2]: value noise summed over 2-4 octaves from a random base scale,
+    between two random colours."""
+    total, weight = np.zeros(len(uv)), 0.0
+    base = rng.uniform(2, 12)
+    for octave in range(int(rng.integers(2, 5))):
+        lattice = rng.uniform(0, 1, (32, 32))
+        p = uv * base * 2**octave
+        i, f = np.floor(p).astype(int) % 32, p - np.floor(p)
+        a, b = lattice[i[:, 0], i[:, 1]], lattice[(i[:, 0] + 1) % 32, i[:, 1]]
+        c, d = lattice[i[:, 0], (i[:, 1] + 1) % 32], lattice[(i[:, 0] + 1) % 32, (i[:, 1] + 1) % 32]
+        value = (a * (1 - f[:, 0]) + b * f[:, 0]) * (1 - f[:, 1]) + (c * (1 - f[:, 0]) + d * f[:, 0]) * f[:, 1]
+        total += value * 0.5**octave
+        weight += 0.5**octave
+    mix = (total / weight)[:, None]
+    low, high = rng.uniform(0.05, 0.95, (2, 3))
+    return low * (1 - mix) + high * mix
+
+
+def _texture_world2(rng: np.random.Generator, uv: np.ndarray) -> np.ndarray:
+    """World 2's textures: world 1's patterns, multi-scale noise or a photograph."""
+    kind = int(rng.integers(3))
+    return (_texture, _noise_texture, _photo_texture)[kind](rng, uv)
+
+
+def _surface(rng, origin, u_axis, v_axis, size_u, size_v, spacing, texture=_texture) -> GaussianBlock:
     nu, nv = max(2, int(size_u / spacing)), max(2, int(size_v / spacing))
     uu, vv = np.meshgrid((np.arange(nu) + 0.5) / nu, (np.arange(nv) + 0.5) / nv, indexing="ij")
     uv = np.stack([uu.ravel(), vv.ravel()], -1)
@@ -185,11 +297,11 @@ def _surface(rng, origin, u_axis, v_axis, size_u, size_v, spacing) -> GaussianBl
         np.tile([0.7 * size_u / nu, 0.7 * size_v / nv, 0.002], (k, 1)),
         np.repeat(frame[None], k, axis=0),
         np.full(k, 0.95),
-        _texture(rng, uv),
+        texture(rng, uv),
     )
 
 
-def _room(rng, gaussian_budget: int) -> GaussianBlock:
+def _room(rng, gaussian_budget: int, texture=_texture) -> GaussianBlock:
     width, depth, height = rng.uniform(4, 7), rng.uniform(5, 8), rng.uniform(2.5, 3.5)
     floor_y, front_z = 1.2, -1.0
     x0, z1 = -width / 2, front_z + depth
@@ -204,13 +316,14 @@ def _room(rng, gaussian_budget: int) -> GaussianBlock:
     ]
     area = sum(su * sv for _, _, _, su, sv in walls)
     spacing = np.sqrt(area / gaussian_budget)
-    blocks = [_surface(rng, *w, spacing) for w in walls]
+    blocks = [_surface(rng, *w, spacing, texture=texture) for w in walls]
     return GaussianBlock(*(np.concatenate([getattr(b, f) for b in blocks]) for f in ("means", "scales", "rotations", "opacities", "colors")))
 
 
-def _object(rng, count: int) -> tuple[GaussianBlock, np.ndarray]:
-    """A textured ellipsoid or box of `count` Gaussians, and a few surface points to track."""
-    radii = rng.uniform(0.15, 0.45, 3)
+def _object(rng, count: int, radii: np.ndarray | None = None, texture=_texture) -> tuple[GaussianBlock, np.ndarray]:
+    """A textured ellipsoid or box of `count` Gaussians (half-axes `radii`, random when not
+    given), and a few surface points to track."""
+    radii = rng.uniform(0.15, 0.45, 3) if radii is None else radii
     directions = rng.normal(size=(count, 3))
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     if rng.random() < 0.5:
@@ -220,12 +333,16 @@ def _object(rng, count: int) -> tuple[GaussianBlock, np.ndarray]:
     uv = np.stack([np.arctan2(directions[:, 0], directions[:, 2]) / (2 * np.pi) + 0.5, directions[:, 1] * 0.5 + 0.5], -1)
     rots = np.stack([_axis_angle(rng.normal(size=3), rng.uniform(0, np.pi)) for _ in range(count)])
     size = np.sqrt(4 * np.pi * radii.mean() ** 2 / count)
-    block = GaussianBlock(surface, np.tile([size, size, size * 0.4], (count, 1)) * rng.uniform(0.8, 1.2, (count, 1)), rots, np.full(count, 0.9), _texture(rng, uv))
+    block = GaussianBlock(surface, np.tile([size, size, size * 0.4], (count, 1)) * rng.uniform(0.8, 1.2, (count, 1)), rots, np.full(count, 0.9), texture(rng, uv))
     return block, surface[rng.choice(count, size=min(8, count), replace=False)]
 
 
-def make_scene(seed: int, duration: float = (FRAMES - 1) / FPS, fps: float = FPS, gaussians: int = 1800) -> Scene:
-    """The scene of `seed`: the same seed always gives the same scene."""
+def make_scene(seed: int, duration: float = (FRAMES - 1) / FPS, fps: float = FPS, gaussians: int = 1800, world: int = 1) -> Scene:
+    """The scene of `seed` in `world` (1 or 2): the same seed always gives the same scene."""
+    if world == 2:
+        return _make_scene_world2(seed, duration, fps, gaussians)
+    if world != 1:
+        raise ValueError(f"no world {world} (1 or 2)")
     rng = np.random.default_rng(seed)
     n_objects = int(rng.integers(1, 5))
     per_object = int(rng.integers(60, 160))
@@ -253,6 +370,81 @@ def make_scene(seed: int, duration: float = (FRAMES - 1) / FPS, fps: float = FPS
     if "direction" in path:
         path["direction"] = path["direction"] / np.linalg.norm(path["direction"])
     return Scene(seed, background, objects, motion, duration, fps, (C4G_FOCAL, C4G_FOCAL, 0.5, 0.5), path, tracks)
+
+
+# World 2's families and motions.
+FAMILIES_WORLD2 = ("solid", "stick", "card", "jointed", "squashy")
+MOTIONS_WORLD2 = ("harmonic", "ballistic", "pivot", "stopgo")
+CAMERA_MOTIONS_WORLD2 = CAMERA_MOTIONS + ("handheld",)
+
+
+def _object_world2(rng: np.random.Generator, count: int, family: str) -> tuple[GaussianBlock, np.ndarray, dict | None, float]:
+    """An object of `family`: its Gaussians, points to track, its joint (jointed) and how much
+    it squashes (squashy)."""
+    radii = {
+        "solid": rng.uniform(0.15, 0.45, 3),
+        "stick": np.array([0.03, rng.uniform(0.3, 0.6), 0.03]),
+        "card": np.array([rng.uniform(0.25, 0.45), rng.uniform(0.25, 0.45), 0.015]),
+        "jointed": np.array([0.08, rng.uniform(0.4, 0.6), 0.08]),
+        "squashy": rng.uniform(0.2, 0.4, 3),
+    }[family]
+    block, track = _object(rng, count, radii, texture=_texture_world2)
+    joint = None
+    if family == "jointed":
+        axis = np.array([rng.normal(), 0.0, rng.normal()])
+        joint = {
+            "pivot": np.zeros(3),
+            "along": np.array([0.0, -1.0, 0.0]),
+            "axis": axis / np.linalg.norm(axis),
+            "amplitude": float(rng.uniform(0.5, 1.2)),
+            "rate": float(rng.uniform(2, 6)),
+            "phase": float(rng.uniform(0, 2 * np.pi)),
+        }
+    deform = float(rng.uniform(0.2, 0.45)) if family == "squashy" else 0.0
+    return block, track, joint, deform
+
+
+def _make_scene_world2(seed: int, duration: float, fps: float, gaussians: int) -> Scene:
+    rng = np.random.default_rng([2, seed])
+    n_objects = int(rng.integers(1, 6))
+    per_object = int(rng.integers(60, 160))
+    background = _room(rng, max(200, gaussians - n_objects * per_object), texture=_texture_world2)
+    objects, tracks = [], []
+    for _ in range(n_objects):
+        family = FAMILIES_WORLD2[int(rng.integers(len(FAMILIES_WORLD2)))]
+        block, track, joint, deform = _object_world2(rng, per_object, family)
+        centre = np.array([rng.uniform(-1.2, 1.2), rng.uniform(-0.2, 0.8), rng.uniform(1.8, 3.5)])
+        motion = MOTIONS_WORLD2[int(rng.integers(len(MOTIONS_WORLD2)))]
+        extent = float(np.abs(block.means).max())
+        params: dict = {}
+        if motion == "ballistic":
+            params = {"floor": 1.2 - extent, "vy": float(rng.uniform(-2.5, -0.5)), "vx": float(rng.uniform(-0.8, 0.8)), "vz": float(rng.uniform(-0.4, 0.4))}
+        elif motion == "pivot":
+            axis = rng.normal(size=3)
+            params = {"pivot": centre + rng.normal(size=3) * np.array([0.5, 0.2, 0.5]), "axis": axis / np.linalg.norm(axis), "rate": float(rng.uniform(0.6, 1.8) * rng.choice([-1, 1]))}
+        elif motion == "stopgo":
+            params = {"waypoints": [centre] + [centre + rng.normal(size=3) * np.array([0.5, 0.15, 0.4]) for _ in range(3)], "leg": duration / 3}
+        objects.append(
+            MovingObject(
+                block, centre, rng.uniform(-0.25, 0.25, (3, 3)) / np.arange(1, 4)[:, None], rng.uniform(0.5, 2.0, 3),
+                rng.uniform(0, 2 * np.pi, (3, 3)), rng.normal(size=3), float(rng.uniform(-2, 2)), deform, float(rng.uniform(2, 6)),
+                motion, params, joint,
+            )  # fmt: skip
+        )
+        tracks.append(track)
+    motion = CAMERA_MOTIONS_WORLD2[int(rng.integers(len(CAMERA_MOTIONS_WORLD2)))]
+    look = np.array([0.0, 0.3, 2.6])
+    path = {
+        "orbit": {"centre": look, "radius": rng.uniform(2.0, 3.2), "height": rng.uniform(-0.1, 0.3), "angle0": rng.uniform(-0.4, 0.4), "sweep": rng.uniform(0.3, 1.0) * rng.choice([-1, 1])},
+        "pan": {"eye": np.array([0.0, 0.0, -0.3]), "sweep": rng.uniform(0.2, 0.7) * rng.choice([-1, 1])},
+        "dolly": {"eye": np.array([0.0, 0.0, -0.5]), "direction": np.array([rng.uniform(-0.25, 0.25), 0.05, 1.0]), "travel": rng.uniform(0.8, 2.2)},
+        "static": {"eye": np.array([0.0, 0.0, -0.3]), "direction": np.array([rng.uniform(-0.25, 0.25), 0.05, 1.0])},
+        "handheld": {"eye": np.array([0.0, 0.0, -0.3]), "sweep": rng.uniform(-0.3, 0.3), "shake": [(rng.normal(size=3) * 0.012, rng.uniform(12, 35), rng.uniform(0, 2 * np.pi)) for _ in range(3)]},
+    }[motion]
+    if "direction" in path:
+        path["direction"] = path["direction"] / np.linalg.norm(path["direction"])
+    light = (float(rng.uniform(0.75, 1.1)), float(rng.uniform(0.9, 1.25))) if rng.random() < 0.5 else (1.0, 1.0)
+    return Scene(seed, background, objects, motion, duration, fps, (C4G_FOCAL, C4G_FOCAL, 0.5, 0.5), path, tracks, light)
 
 
 def normalise_to_first_camera(w2c: np.ndarray, first: int, last: int, median_depth_first: float) -> tuple[np.ndarray, float]:
