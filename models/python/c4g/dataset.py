@@ -2,17 +2,18 @@
 
     python -m c4g.dataset --split train --count 2400 --out data/synthetic
     python -m c4g.dataset --split validation --count 64 --out data/synthetic
-    python -m c4g.dataset --world 2 --split train --count 2400 --out data/world2
+    python -m c4g.dataset --world 2 --frames 17 --split train --count 2400 --out data/world2
 
-Each split is one `<split>.npz`: for C clips of `synthetic.FRAMES` frames at `synthetic.SIZE`,
+Each split is one `<split>.npz`: for C clips of F frames (`--frames`, default `synthetic.FRAMES`:
+clips of (F - 1) / FPS seconds) at `SIZE`,
 frames uint8 [C, F, H, W, 3], expected depth float16 [C, F, H, W] (world units), dynamic masks
 bool [C, F, H, W], world-to-camera poses float64 [C, F, 4, 4], media times float64 [C, F] and the
 scene seeds [C] and the world [] (`synthetic.make_scene`'s `world`: 1, c4g-tiny's, or 2, the wider
 one). Clip i of a split is the scene of seed `SPLITS[split][i]`, so a split is a pure function of
 its world, name and count.
 
-A training sample is a window of 2T - 1 consecutive frames: the even ones are the context (stride 2,
-as in the paper), the odd ones the targets between them. Cameras and depths are expressed in the
+A training sample is a window of (T - 1) s + 1 consecutive frames: every s-th one is context (stride
+s = 2 as in the paper; larger strides put wider gaps in training), the frames between them targets. Cameras and depths are expressed in the
 model's frame (`synthetic.normalise_to_first_camera`).
 """
 
@@ -37,16 +38,17 @@ def _one_thread() -> None:
     torch.set_num_threads(1)
 
 
-def _render(job: tuple[int, int]) -> tuple:
-    seed, world = job
-    clip = render_clip(make_scene(seed, world=world), np.arange(FRAMES) / FPS, SIZE)
+def _render(job: tuple[int, int, int]) -> tuple:
+    seed, world, frames = job
+    scene = make_scene(seed, duration=(frames - 1) / FPS, world=world)
+    clip = render_clip(scene, np.arange(frames) / FPS, SIZE)
     frames = np.round(clip.frames * 255).astype(np.uint8)
     return frames, clip.depth.astype(np.float16), clip.dynamic_mask, clip.world_to_camera, clip.times
 
 
-def generate(split: str, count: int, out: Path, processes: int = 2, world: int = 1) -> Path:
+def generate(split: str, count: int, out: Path, processes: int = 2, world: int = 1, frames: int = FRAMES) -> Path:
     seeds = list(SPLITS[split][:count])
-    jobs = [(s, world) for s in seeds]
+    jobs = [(s, world, frames) for s in seeds]
     if processes > 1:
         # Spawned, not forked: a fork would inherit the parent's torch and Numba thread pools.
         with get_context("spawn").Pool(processes, initializer=_one_thread) as pool:
@@ -100,8 +102,13 @@ class Sample:
     scale: float  # model units per world unit
 
 
-def window(split: Split, clip: int, start: int, context_frames: int) -> Sample:
-    idx = start + np.arange(2 * context_frames - 1)
+def span(context_frames: int, stride: int = 2) -> int:
+    """Frames a window of `context_frames` context frames `stride` apart covers."""
+    return (context_frames - 1) * stride + 1
+
+
+def window(split: Split, clip: int, start: int, context_frames: int, stride: int = 2) -> Sample:
+    idx = start + np.arange(span(context_frames, stride))
     depth = split.depth[clip, idx].astype(np.float32)
     first = depth[0]
     w2c, scale = normalise_to_first_camera(
@@ -113,16 +120,19 @@ def window(split: Split, clip: int, start: int, context_frames: int) -> Sample:
         split.dynamic[clip, idx],
         w2c,
         split.times[clip, idx],
-        np.arange(0, len(idx), 2),
-        np.arange(1, len(idx), 2),
+        np.arange(0, len(idx), stride),
+        np.setdiff1d(np.arange(len(idx)), np.arange(0, len(idx), stride)),
         scale,
     )
 
 
-def random_windows(split: Split, rng: np.random.Generator, batch: int, context_frames: int) -> list[Sample]:
+def random_windows(split: Split, rng: np.random.Generator, batch: int, context_frames: int, stride: int = 2) -> list[Sample]:
     clips = rng.integers(0, len(split), batch)
-    span = 2 * context_frames - 1
-    return [window(split, int(c), int(rng.integers(0, FRAMES - span + 1)), context_frames) for c in clips]
+    length = span(context_frames, stride)
+    frames = split.frames.shape[1]
+    if length > frames:
+        raise ValueError(f"{context_frames} context frames {stride} apart span {length} frames; the clips have {frames}")
+    return [window(split, int(c), int(rng.integers(0, frames - length + 1)), context_frames, stride) for c in clips]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -132,8 +142,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--processes", type=int, default=2)
     ap.add_argument("--world", type=int, choices=[1, 2], default=1, help="1: c4g-tiny's world; 2: the wider one")
+    ap.add_argument("--frames", type=int, default=FRAMES, help="frames a clip (at 10 fps)")
     args = ap.parse_args(argv)
-    path = generate(args.split, args.count, args.out, args.processes, args.world)
+    path = generate(args.split, args.count, args.out, args.processes, args.world, args.frames)
     print(f"wrote {path} ({args.count} clips)")
     return 0
 

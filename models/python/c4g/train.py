@@ -42,11 +42,11 @@ import torch.nn.functional as F
 
 from .config import C4GConfig
 from .decoder import SH_C0, to_canonical
-from .dataset import Sample, Split, random_windows, window
+from .dataset import Sample, Split, random_windows, span, window
 from .model import C4G
 from .raster_fast import render_batch
 from .synthetic import C4G_FOCAL
-from .time_policy import normalise_batch
+from .time_policy import POLICIES, normalise_batch
 
 TINY = C4GConfig(
     dino_dim=64,
@@ -223,11 +223,13 @@ def split_canonical(gaussians: torch.Tensor) -> tuple[torch.Tensor, ...]:
 
 
 def predict(model: C4G, sample: Sample, views: np.ndarray, policy: str = "stable") -> tuple[dict[str, torch.Tensor], tuple]:
+    # The source frame step the `frame-step` policy reads: the clips' own (frames are evenly timed).
+    frame_step = float(sample.times[1] - sample.times[0]) if len(sample.times) > 1 else None
     """Encode the sample's context frames, decode at the times of `views` (window indices) and render
     each at its camera. Returns (the renders, the Gaussians as render_batch arguments)."""
     frames = torch.from_numpy(sample.frames[sample.context]).permute(0, 3, 1, 2) * 2 - 1
     features = model.encode(frames)
-    ctx_times, tgt_times = normalise_batch(sample.times[sample.context].tolist(), sample.times[views].tolist(), policy)
+    ctx_times, tgt_times = normalise_batch(sample.times[sample.context].tolist(), sample.times[views].tolist(), policy, frame_step)
     decoded = model.decode(features, torch.from_numpy(ctx_times), torch.from_numpy(tgt_times))
     size = model.cfg.image_size
     f = INTRINSICS_NORMALISED * size
@@ -285,13 +287,13 @@ def psnr(mse: float) -> float:
 
 
 @torch.no_grad()
-def validate(model: C4G, split: Split, context_frames: int) -> dict[str, float]:
+def validate(model: C4G, split: Split, context_frames: int, policy: str = "stable") -> dict[str, float]:
     """PSNR at the targets between context frames, on the first window of every validation clip."""
     model.eval()
     errors = []
     for clip in range(len(split)):
         s = window(split, clip, 0, context_frames)
-        out, _ = predict(model, s, s.targets)
+        out, _ = predict(model, s, s.targets, policy)
         errors.append(float(((out["rgb"].clamp(0, 1) - torch.from_numpy(s.frames[s.targets])) ** 2).mean()))
     model.train()
     return {"val_psnr": float(np.mean([psnr(e) for e in errors]))}
@@ -304,6 +306,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=2400)
     ap.add_argument("--batch", type=int, default=4, help="clip windows per step")
     ap.add_argument("--context-frames", default="3,4", help="T is drawn per step from these")
+    ap.add_argument("--strides", default="2", help="source frames between context frames, drawn per step from these (pairs with T that fit the clips)")
+    ap.add_argument("--time-policy", choices=sorted(POLICIES), default="stable", help="the time normalisation trained with (the package declares it)")
     ap.add_argument("--lr", type=float, default=8e-4)
     ap.add_argument("--warmup", type=int, default=150)
     ap.add_argument("--dynamic-weight", type=float, default=3.0, help="extra MSE weight on pixels of moving objects")
@@ -319,14 +323,21 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     args.run.mkdir(parents=True, exist_ok=True)
-    recipe = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k not in ("run", "threads", "checkpoint_every", "validate_every", "stop_after")}
+    # Defaults that c4g-tiny (v1) was trained before they existed are left out of its recipe, so
+    # its runs still resume and its recipe stays as it was.
+    v1_defaults = {"strides": "2", "time_policy": "stable"}
+    recipe = {
+        k: (str(v) if isinstance(v, Path) else v)
+        for k, v in vars(args).items()
+        if k not in ("run", "threads", "checkpoint_every", "validate_every", "stop_after") and v1_defaults.get(k, object()) != v
+    }
     recipe.update(
         config=TINY.to_dict(),
         scale_gain=SCALE_GAIN,
         attention_sharpness=ATTENTION_SHARPNESS,
         position_code_amplitude=POSITION_CODE_AMPLITUDE,
         query_grid=list(QUERY_GRID),
-        time_policy="stable",
+        time_policy=args.time_policy,
         optimizer="AdamW(0.9, 0.99), wd 0.01 on matrices, cosine to 10%, grad clip 1",
     )
 
@@ -350,7 +361,13 @@ def main(argv: list[str] | None = None) -> int:
         opt.load_state_dict(state["optimizer"])
         step = state["step"]
         print(f"resumed at step {step}")
+    frames = train.frames.shape[1]
     choices = [int(c) for c in args.context_frames.split(",")]
+    strides = [int(s) for s in args.strides.split(",")]
+    fitting = {t: [s for s in strides if span(t, s) <= frames] for t in choices}
+    if not all(fitting.values()):
+        print(f"error: some --context-frames fit no --strides in the training clips ({frames} frames): {fitting}", file=sys.stderr)
+        return 2
     log = (args.run / "log.jsonl").open("a")
     model.train()
     t0 = time.time()
@@ -362,11 +379,13 @@ def main(argv: list[str] | None = None) -> int:
         for g in opt.param_groups:
             g["lr"] = lr
         t = int(rng.choice(choices))
+        # One stride draws nothing more, so c4g-tiny's recipe sees the same data as it did.
+        stride = fitting[t][0] if len(strides) == 1 else int(rng.choice(fitting[t]))
         totals: dict[str, float] = {}
         opt.zero_grad()
-        for sample in random_windows(train, rng, args.batch, t):
+        for sample in random_windows(train, rng, args.batch, t, stride):
             views = np.concatenate((sample.targets, rng.choice(sample.context, 1)))
-            out, gaussians = predict(model, sample, views)
+            out, gaussians = predict(model, sample, views, args.time_policy)
             terms = loss_terms(out, gaussians, sample, views, args.dynamic_weight, rng)
             loss = (
                 terms["mse"]
@@ -381,9 +400,9 @@ def main(argv: list[str] | None = None) -> int:
         grad_norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0))
         opt.step()
         step += 1
-        record = {"step": step, "lr": lr, "T": t, "grad_norm": grad_norm, "psnr": psnr(totals["mse"]), **totals, "elapsed_s": time.time() - t0}
+        record = {"step": step, "lr": lr, "T": t, "stride": stride, "grad_norm": grad_norm, "psnr": psnr(totals["mse"]), **totals, "elapsed_s": time.time() - t0}
         if step % args.validate_every == 0 or step == args.steps:
-            record.update(validate(model, val, 4))
+            record.update(validate(model, val, 4, args.time_policy))
         log.write(json.dumps(record) + "\n")
         log.flush()
         if step % 10 == 0 or "val_psnr" in record:

@@ -42,3 +42,43 @@ def test_a_stopped_and_resumed_run_ends_where_an_uninterrupted_one_does(tmp_path
         np.testing.assert_allclose(split[k].numpy(), whole[k].numpy(), rtol=1e-5, atol=1e-6, err_msg=k)
     # A different recipe in the same folder is refused rather than silently mixed.
     assert main([*common[:-4], "--lr", "1e-3", "--run", str(tmp_path / "split")]) == 2
+
+
+def test_windows_at_wider_strides_put_targets_between_their_context_frames(tmp_path):
+    from c4g.dataset import Split, random_windows, span, window
+
+    split = Split.load(generate("validation", 1, tmp_path, processes=1, world=2, frames=17))
+    assert split.frames.shape[1] == 17
+    s = window(split, 0, 2, 4, stride=4)
+    np.testing.assert_array_equal(s.context, [0, 4, 8, 12])
+    np.testing.assert_array_equal(s.targets, [1, 2, 3, 5, 6, 7, 9, 10, 11])
+    np.testing.assert_allclose(s.times[s.context], np.array([2, 6, 10, 14]) / 10)
+    # The model's frame: the first context camera is the identity whatever the stride.
+    np.testing.assert_allclose(s.world_to_camera[0], np.eye(4), atol=1e-12)
+    assert span(8, 2) == 15 and span(5, 4) == 17
+    rng = np.random.default_rng(0)
+    assert all(len(w.times) == 17 for w in random_windows(split, rng, 3, 5, 4))
+    try:
+        random_windows(split, rng, 1, 6, 4)
+    except ValueError as e:
+        assert "21 frames" in str(e)
+    else:
+        raise AssertionError("a window longer than the clips was cut")
+
+
+def test_a_run_over_strides_and_context_sizes_records_its_recipe_and_policy(tmp_path):
+    import json
+
+    data = tmp_path / "data"
+    generate("train", 2, data, processes=1, world=2, frames=13)
+    generate("validation", 1, data, processes=1, world=2, frames=13)
+    common = ["--data", str(data), "--steps", "2", "--batch", "1", "--threads", "1", "--validate-every", "1000"]
+    run = tmp_path / "run"
+    args = [*common, "--context-frames", "2,3,4", "--strides", "2,4", "--time-policy", "frame-step", "--run", str(run)]
+    assert main(args) == 0
+    recipe = json.loads((run / "recipe.json").read_text())
+    assert (recipe["strides"], recipe["time_policy"], recipe["context_frames"]) == ("2,4", "frame-step", "2,3,4")
+    steps = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert all(s["stride"] in (2, 4) and s["T"] in (2, 3, 4) for s in steps)
+    # Eight context frames at stride 4 span 29 frames: no clip of 13 holds them.
+    assert main([*common, "--context-frames", "8", "--strides", "4", "--run", str(tmp_path / "bad")]) == 2
