@@ -5,12 +5,14 @@
 //! together by threads to meet, and work slots for all of them. Checked: twelve concurrent
 //! single-target requests (eight decodes, four renders) are answered by fewer decoder runs than
 //! requests (`c4g_decode_duration_seconds_count`, one sample a decoder call); the batch metrics
-//! add up; each decoded set equals the set decoded alone, and each render the render made alone.
+//! add up; each decoded set agrees with the set decoded alone, and each render with the render
+//! made alone.
 //!
-//! Equality, not closeness: the decoder computes each target's rows independently of the others
-//! in the batch, and ONNX Runtime's CPU kernels give the same bits for a row whatever the batch
-//! on this model (checked here: if that stopped holding, this test says so before a client
-//! sees exact answers depend on their neighbours).
+//! Closeness, not equality: ONNX Runtime's CPU kernels split a matrix product over threads by its
+//! shape, so a target decoded among others may round differently from the same target alone
+//! (seen here: equal bits in one run, not in another, as the batches formed differently). The sets
+//! must agree within 1e-4 in every parameter (rounding of f32 sums is about 1e-6 here; a target
+//! mixed up with another differs by far more), and renders within 2 of 255 per channel.
 
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
@@ -108,19 +110,45 @@ fn concurrent_exact_requests_share_decoder_runs_and_get_what_they_would_alone() 
     assert_eq!(metric(&text, "c4g_decode_batch_requests_count"), runs);
     eprintln!("batching: {requests} concurrent single-target requests in {runs} decoder runs");
 
-    // Alone, one after another: the same bytes.
+    // Alone, one after another: the same sets and renders, within rounding.
     for (t, batched) in decode_times.iter().zip(&decoded) {
+        let (alone, batched) = (sets(&decode(&server, &id, *t)), sets(batched));
+        let worst = alone
+            .iter()
+            .zip(&batched)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
         assert!(
-            decode(&server, &id, *t) == *batched,
-            "the set at t={t} decoded in a batch differs from the set decoded alone"
+            alone.len() == batched.len() && worst <= 1e-4,
+            "the set at t={t} decoded in a batch differs from the set decoded alone by {worst}"
         );
     }
     for (t, batched) in render_times.iter().zip(&rendered) {
+        let alone = image::load_from_memory(&render(&server, &id, *t))
+            .unwrap()
+            .to_rgb8();
+        let batched = image::load_from_memory(batched).unwrap().to_rgb8();
+        let worst = alone
+            .as_raw()
+            .iter()
+            .zip(batched.as_raw())
+            .map(|(a, b)| a.abs_diff(*b))
+            .max()
+            .unwrap_or(0);
         assert!(
-            render(&server, &id, *t) == *batched,
-            "the render at t={t} differs when its decode was batched"
+            worst <= 2,
+            "the render at t={t} differs by {worst} of 255 when its decode was batched"
         );
     }
+}
+
+/// Every parameter of the sets in a C4GS answer, in order.
+fn sets(bytes: &[u8]) -> Vec<f32> {
+    c4g_renderer::formats::c4gs::decode(bytes)
+        .unwrap()
+        .into_iter()
+        .flat_map(|(_, set)| set.to_canonical())
+        .collect()
 }
 
 #[test]
