@@ -129,7 +129,7 @@ impl DecodeBatcher {
             }
         };
         if let Some(full) = full {
-            spawn_run(service.clone(), full);
+            tokio::spawn(run(service.clone(), full));
         }
         if let Some(serial) = opened {
             self.flush_after_wait(service, id, serial);
@@ -164,10 +164,6 @@ impl DecodeBatcher {
             }
         });
     }
-}
-
-fn spawn_run(service: Arc<Service>, batch: Open) {
-    tokio::spawn(run(service, batch));
 }
 
 /// One decoder call (chunked by the engine's batch) for every member's targets, the sets handed

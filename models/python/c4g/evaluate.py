@@ -66,6 +66,19 @@ def render_gaussians(gaussians: torch.Tensor, poses: np.ndarray, size: int) -> n
     return out["rgb"].clamp(0, 1).numpy()
 
 
+def novel_world_poses(novel_model: np.ndarray, first_world: np.ndarray, scale: float) -> np.ndarray:
+    """Novel cameras [V, 4, 4] given in the model's frame, back in the scene's world: the frame
+    of the first context camera `first_world` (world-to-camera), scaled by `scale` model units
+    per world unit (`normalise_to_first_camera`)."""
+    to_model = np.linalg.inv(first_world)
+    out = []
+    for p in novel_model:
+        q = p.copy()
+        q[:3, 3] /= scale  # model units → world units
+        out.append(q @ np.linalg.inv(to_model))
+    return np.stack(out)
+
+
 @torch.no_grad()
 def evaluate_clip(model: C4G, seed: int, context_frames: int) -> dict:
     scene = make_scene(seed)
@@ -79,13 +92,8 @@ def evaluate_clip(model: C4G, seed: int, context_frames: int) -> dict:
     ctx, tgt = np.arange(0, span, 2), np.arange(1, span, 2)
     # Novel views: GT rendered from the moved camera, expressed back in the world.
     novel_model = np.stack([novel_pose(w2c[i]) for i in tgt])
-    to_model = np.linalg.inv(clip.world_to_camera[0])
-    novel_world = []
-    for p in novel_model:
-        q = p.copy()
-        q[:3, 3] /= scale  # model units → world units
-        novel_world.append(q @ np.linalg.inv(to_model))
-    novel_gt = quantise(render_clip(scene, times[tgt], SIZE, cameras=np.stack(novel_world)).frames).astype(np.float32) / 255.0
+    novel_world = novel_world_poses(novel_model, clip.world_to_camera[0], scale)
+    novel_gt = quantise(render_clip(scene, times[tgt], SIZE, cameras=novel_world).frames).astype(np.float32) / 255.0
 
     features = model.encode(torch.from_numpy(frames[ctx]).permute(0, 3, 1, 2) * 2 - 1)
     c, t = normalise_batch(times[ctx].tolist(), times[tgt].tolist())

@@ -29,9 +29,8 @@ import onnxruntime as ort
 import torch
 
 from . import eval_world, synthetic
-from .evaluate import novel_pose, quantise
+from .evaluate import novel_pose, novel_world_poses, quantise, render_gaussians
 from .metrics_reference import psnr
-from .raster_fast import render_batch
 from .time_policy import normalise_batch
 
 WORLDS = ("train-world", "eval-world")
@@ -65,14 +64,6 @@ class Package:
         return gaussians
 
 
-def render_canonical(gaussians: np.ndarray, poses: np.ndarray, size: int) -> np.ndarray:
-    g = torch.from_numpy(gaussians.astype(np.float64))
-    f = synthetic.C4G_FOCAL * size
-    with torch.no_grad():
-        out = render_batch(g[..., 0:3], g[..., 3:6], g[..., 6:10], g[..., 10], g[..., 11:14], (f, f, size / 2, size / 2), torch.from_numpy(poses), size, size)
-    return out["rgb"].clamp(0, 1).numpy()
-
-
 def world_clip(world: str, index: int, frames: int, size: int):
     """(frames [F, H, W, 3] in [0, 1], depth [F, H, W], world-to-camera [F, 4, 4], a renderer of
     the same scene from given cameras at given times) for clip `index` of `world`."""
@@ -101,17 +92,12 @@ def score_clip(package: Package, world: str, index: int, stride: int) -> dict:
     first = depth[0]
     w2c, scale = synthetic.normalise_to_first_camera(w2c_world, int(context[0]), int(context[-1]), float(np.median(first[first > 0])))
     novel_model = np.stack([novel_pose(w2c[i]) for i in targets])
-    to_model = np.linalg.inv(w2c_world[0])
-    novel_world = []
-    for p in novel_model:
-        q = p.copy()
-        q[:3, 3] /= scale
-        novel_world.append(q @ np.linalg.inv(to_model))
-    novel_truth = quantise(again(times[targets], np.stack(novel_world))).astype(np.float32) / 255.0
+    novel_truth = quantise(again(times[targets], novel_world_poses(novel_model, w2c_world[0], scale))).astype(np.float32) / 255.0
 
     gaussians = package.gaussians(frames_u8[context], times[context].tolist(), times[targets].tolist(), 1.0 / synthetic.FPS)
-    interp = render_canonical(gaussians, w2c[targets], size)
-    novel = render_canonical(gaussians, novel_model, size)
+    with torch.no_grad():
+        interp = render_gaussians(torch.from_numpy(gaussians), w2c[targets], size)
+        novel = render_gaussians(torch.from_numpy(gaussians), novel_model, size)
     mean_colour = np.broadcast_to(frames[context].mean(axis=(0, 1, 2)), frames[0].shape)
     before = [frames[t - stride // 2] for t in targets]
     blend = [(frames[t - stride // 2] + frames[t + stride // 2]) / 2 for t in targets]
