@@ -64,7 +64,7 @@ def test_refiner_json_is_what_the_export_writes(meta, models):
         "vae": sum(p.numel() for p in vae.parameters()),
         "text_encoder": sum(p.numel() for p in text.build_text_encoder(text.UMT5_TINY, 6).parameters()),
     }
-    expected = export.manifest(configs.TINY, meta["source"], "fused", "f32", counts, meta["files"]["lora"], text.UMT5_TINY)
+    expected = export.manifest(configs.TINY, meta["source"], "fused", "f32", counts, meta["files"]["lora"], text.UMT5_TINY, positions=False)
     expected["diffusers_config"] = {"transformer": export._config_dict(transformer), "vae": export._config_dict(vae)}
     assert json.loads(json.dumps(expected)) == meta
 
@@ -196,6 +196,7 @@ def test_diffusers_checkout_exports_a_package_with_plain_attention_and_external_
         "control": torch.randn(1, 96, 2, 2, 4, generator=gen),
         "control_scale": torch.tensor([0.3, 1.2]),
     }
+    assert meta["layout"] == {"kind": "vace"} and meta["graphs"]["transformer"]["inputs"]["positions"] == [2]
     with torch.no_grad():
         expected = transformer(
             hidden_states=feeds["latents"], timestep=feeds["timestep"], encoder_hidden_states=feeds["text_embeddings"],
@@ -203,7 +204,8 @@ def test_diffusers_checkout_exports_a_package_with_plain_attention_and_external_
         )[0].numpy()  # fmt: skip
         video = torch.rand(1, 3, 5, 16, 32, generator=gen) * 2 - 1
         mode = vae.encode(video).latent_dist.mode().numpy()
-    velocity = session(out / "transformer.onnx").run(None, {k: v.numpy() for k, v in feeds.items()})[0]
+    # New exports take temporal positions: VACE's layout feeds 0..F'-1, which is diffusers' own RoPE.
+    velocity = session(out / "transformer.onnx").run(None, {**{k: v.numpy() for k, v in feeds.items()}, "positions": np.arange(2)})[0]
     np.testing.assert_allclose(velocity, expected, atol=ONNX_ATOL, rtol=0)
     latents = session(out / "vae_encoder.onnx").run(None, {"video": video.numpy()})[0]
     np.testing.assert_allclose(latents, mode, atol=ONNX_ATOL, rtol=0)
@@ -223,9 +225,10 @@ def test_fp16_transformer_keeps_f32_inputs_and_outputs(tmp_path, models, refs):
     path = tmp_path / "transformer.onnx"
     onnx_graphs.export_transformer(export.to_fp16(copy.deepcopy(models[0])), configs.TINY, path, fused=True)
     sess = session(path)
-    assert all(i.type == "tensor(float)" for i in (*sess.get_inputs(), *sess.get_outputs()))
+    types = {i.name: i.type for i in (*sess.get_inputs(), *sess.get_outputs())}
+    assert types.pop("positions") == "tensor(int64)" and set(types.values()) == {"tensor(float)"}
     case = refs["transformer"]
-    velocity = sess.run(None, {k: case[k] for k in TRANSFORMER_INPUTS})[0]
+    velocity = sess.run(None, {**{k: case[k] for k in TRANSFORMER_INPUTS}, "positions": np.arange(3)})[0]
     np.testing.assert_allclose(velocity, case["velocity"], atol=2e-2, rtol=0)  # measured ~2e-3
 
 

@@ -84,10 +84,22 @@ class RefinerConfig:
     steps: int = 30
     guidance_scale: float = 5.0
     scheduler: dict = field(default_factory=dict)
+    # C4G's layout (c4g_layout.py): K keyframe slots before the `frames` rendered frames; 0 = VACE's.
+    keyframes: int = 0
+
+    @property
+    def rendered_latent_frames(self) -> int:
+        """Latent frames of the `frames`-frame video the VAE graphs take (one causal chunk)."""
+        return (self.frames - 1) // 4 + 1
 
     @property
     def latent_frames(self) -> int:
-        return (self.frames - 1) // 4 + 1
+        """Latent frames the transformer takes: keyframe slots, then the video's."""
+        return self.keyframes + self.rendered_latent_frames
+
+    @property
+    def rendered_latent_shape(self) -> list[int]:
+        return [1, 16, self.rendered_latent_frames, self.latent_height, self.latent_width]
 
     @property
     def latent_height(self) -> int:
@@ -132,6 +144,11 @@ TINY = RefinerConfig(
 WAN_1_3B = RefinerConfig(
     name="wan2.1-vace-1.3b", transformer=TRANSFORMER_1_3B, vae=VAE_WAN21, frames=81, height=480, width=832, text_tokens=512,
     shift=3.0, steps=30, scheduler={**UNIPC_FLOW, "flow_shift": 3.0},
+)
+# C4G's layout at the tiny size: 3 keyframes and 5 rendered frames (2 latent frames): 5 latent frames.
+TINY_C4G = RefinerConfig(
+    name="wan-vace-tiny-c4g", transformer=TRANSFORMER_TINY, vae=VAE_TINY, frames=5, height=32, width=48, text_tokens=16,
+    shift=5.0, steps=3, guidance_scale=5.0, keyframes=3,
 )
 PRESETS = {"tiny": TINY, "1.3b": WAN_1_3B}
 

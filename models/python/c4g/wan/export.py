@@ -60,10 +60,11 @@ import torch
 
 from ..export import readable_by_all
 from . import lora as lora_mod
-from . import onnx_graphs, reference, text
-from .configs import PRESETS, TINY, RefinerConfig, build_transformer, build_vae
+from . import c4g_layout, onnx_graphs, reference, text
+from .configs import PRESETS, TINY, TINY_C4G, RefinerConfig, build_transformer, build_vae
 
 TEXT_ENCODER_FILE = "text_encoder.onnx"
+FRAME_ENCODER_FILE = "vae_frame_encoder.onnx"
 TOKENIZER_FILE = "tokenizer.json"
 LORA_RANK = 4
 LORA_ALPHA = 6.0  # scale 1.5: a file that ignores alpha (scale 1) is caught
@@ -91,12 +92,13 @@ TIMESTEP = {
 }
 
 
-def graph_signatures(cfg: RefinerConfig) -> dict:
+def graph_signatures(cfg: RefinerConfig, positions: bool = True) -> dict:
     f, h, w = cfg.latent_frames, cfg.latent_height, cfg.latent_width
     n_vace = len(cfg.transformer["vace_layers"])
     latent = [1, 16, f, h, w]
+    chunk = cfg.rendered_latent_shape
     video = [1, 3, cfg.frames, cfg.height, cfg.width]
-    return {
+    graphs = {
         "transformer": {
             "inputs": {
                 "latents": latent,
@@ -104,19 +106,49 @@ def graph_signatures(cfg: RefinerConfig) -> dict:
                 "text_embeddings": [1, cfg.text_tokens, cfg.transformer["text_dim"]],
                 "control": [1, cfg.transformer["vace_in_channels"], f, h, w],
                 "control_scale": [n_vace],
+                **({"positions": [f]} if positions else {}),
             },
             "outputs": {"velocity": latent},
         },
-        "vae_encoder": {"inputs": {"video": video}, "outputs": {"latents": latent}},
-        "vae_decoder": {"inputs": {"latents": latent}, "outputs": {"video": video}},
+        "vae_encoder": {"inputs": {"video": video}, "outputs": {"latents": chunk}},
+        "vae_decoder": {"inputs": {"latents": chunk}, "outputs": {"video": video}},
+    }
+    if cfg.keyframes:
+        graphs["vae_frame_encoder"] = {"inputs": {"video": [1, 3, 1, cfg.height, cfg.width]}, "outputs": {"latents": [1, 16, 1, h, w]}}
+    return graphs
+
+
+def layout_entry(cfg: RefinerConfig) -> dict:
+    """refiner.json `layout`: how a run's latent frames are laid out (see the module doc)."""
+    if not cfg.keyframes:
+        return {"kind": "vace"}
+    return {
+        "kind": "c4g",
+        "keyframes": cfg.keyframes,
+        "keyframe_position_offset": c4g_layout.KEYFRAME_POSITION_OFFSET,
+        "rope_positions": cfg.transformer["rope_max_seq_len"],
+        "sequence": "[K keyframes, each VAE-encoded alone ; the rendered frames padded to `frames` by repeating the last, one chunk]",
+        "positions": "keyframe: source-frame index + keyframe_position_offset; rendered latent frame j: j",
+        "sampler": {"solver": "euler", "schedule": "diffsynth", **c4g_layout.DEFAULTS},
     }
 
 
-def manifest(cfg: RefinerConfig, source: dict, attention: str, precision: str, counts: dict, lora: dict | None = None, text_encoder: dict | None = None) -> dict:
+def manifest(
+    cfg: RefinerConfig,
+    source: dict,
+    attention: str,
+    precision: str,
+    counts: dict,
+    lora: dict | None = None,
+    text_encoder: dict | None = None,
+    positions: bool = True,
+) -> dict:
     """refiner.json. `text_encoder`: the umT5 config when the package has the encoder and tokenizer."""
     mean, std = cfg.vae["latents_mean"], cfg.vae["latents_std"]
     files = {"transformer": "transformer.onnx", "vae_encoder": "vae_encoder.onnx", "vae_decoder": "vae_decoder.onnx"}
-    graphs = graph_signatures(cfg)
+    if cfg.keyframes:
+        files["vae_frame_encoder"] = FRAME_ENCODER_FILE
+    graphs = graph_signatures(cfg, positions)
     text_spec: dict = {"tokens": cfg.text_tokens, "dim": cfg.transformer["text_dim"]}
     if text_encoder is not None:
         files["text_encoder"] = TEXT_ENCODER_FILE
@@ -146,6 +178,7 @@ def manifest(cfg: RefinerConfig, source: dict, attention: str, precision: str, c
             "temporal_compression": 4,
             "spatial_compression": 8,
         },
+        "layout": layout_entry(cfg),
         "patch_size": list(cfg.transformer["patch_size"]),
         "tokens": cfg.tokens,
         "vace_layers": list(cfg.transformer["vace_layers"]),
@@ -187,10 +220,15 @@ def to_fp16(transformer: torch.nn.Module) -> torch.nn.Module:
 # ----------------------------------------------------------------------------- packages
 
 
-def export_models(transformer, vae, cfg: RefinerConfig, out: Path, attention: str, external_data: bool | None = None, compact: bool = False) -> None:
+def export_models(
+    transformer, vae, cfg: RefinerConfig, out: Path, attention: str, external_data: bool | None = None, compact: bool = False, positions: bool = True
+) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    onnx_graphs.export_transformer(transformer, cfg, out / "transformer.onnx", fused=attention == "fused", external_data=external_data, compact=compact)
-    onnx_graphs.export_vae(vae, cfg, out / "vae_encoder.onnx", out / "vae_decoder.onnx", compact=compact)
+    onnx_graphs.export_transformer(
+        transformer, cfg, out / "transformer.onnx", fused=attention == "fused", external_data=external_data, compact=compact, positions=positions
+    )
+    frame_encoder = out / FRAME_ENCODER_FILE if cfg.keyframes else None
+    onnx_graphs.export_vae(vae, cfg, out / "vae_encoder.onnx", out / "vae_decoder.onnx", compact=compact, frame_encoder_path=frame_encoder)
 
 
 def export_tiny(out: Path, seed: int = 0, attention: str = "fused") -> dict:
@@ -233,7 +271,8 @@ def export_tiny(out: Path, seed: int = 0, attention: str = "fused") -> dict:
     reference.save_npz(ref / "text.npz", text_arrays)
     text.export_text_encoder(text_encoder, cfg.text_tokens, out / TEXT_ENCODER_FILE, compact=True)
 
-    export_models(copy.deepcopy(transformer), copy.deepcopy(vae), cfg, out, attention, compact=True)
+    # Exported without temporal positions, as it was before they existed (the c4g fixture has them).
+    export_models(copy.deepcopy(transformer), copy.deepcopy(vae), cfg, out, attention, compact=True, positions=False)
     counts = {
         "transformer": sum(p.numel() for p in transformer.parameters()),
         "vae": sum(p.numel() for p in vae.parameters()),
@@ -247,12 +286,55 @@ def export_tiny(out: Path, seed: int = 0, attention: str = "fused") -> dict:
         "rank": LORA_RANK,
         "alpha": LORA_ALPHA,
     }
-    meta = manifest(cfg, {"kind": "random-init", "seed": seed, "config": "tiny"}, attention, "f32", counts, lora_files, text.UMT5_TINY)
+    meta = manifest(cfg, {"kind": "random-init", "seed": seed, "config": "tiny"}, attention, "f32", counts, lora_files, text.UMT5_TINY, positions=False)
     meta["diffusers_config"] = {"transformer": _config_dict(transformer), "vae": _config_dict(vae)}
     (out / "refiner.json").write_text(json.dumps(meta, indent=2) + "\n")
     (out / "README.md").write_text(package_readme(meta))
     (ref / "README.md").write_text(reference_readme(cfg, seed))
     return meta
+
+
+def export_tiny_c4g(out: Path, seed: int = 0, attention: str = "fused") -> dict:
+    """The C4G-layout fixture package: the tiny fixture's weights (same seed), graphs at 3 keyframes +
+    5 rendered frames with temporal positions as an input, and c4g_layout.py's reference outputs."""
+    cfg = TINY_C4G
+    cfg.validate()
+    out.mkdir(parents=True, exist_ok=True)
+    transformer = build_transformer(cfg.transformer, seed)
+    vae = build_vae(cfg.vae, seed)
+    ref = out / "reference"
+    ref.mkdir(parents=True, exist_ok=True)
+    inputs = c4g_layout.fixture_inputs(cfg, seed + 3, rendered_frames=cfg.frames - 1)
+    run = c4g_layout.run(transformer, vae, cfg, inputs, cfg.steps, cfg.shift, cfg.guidance_scale)
+    reference.save_npz(ref / "pipeline_c4g.npz", run)
+    reference.save_npz(ref / "transformer_positions.npz", transformer_positions_case(transformer, cfg, seed + 4))
+    reference.save_npz(ref / "vae_frame.npz", c4g_layout.frame_encoder_case(vae, cfg, seed + 5))
+    export_models(copy.deepcopy(transformer), copy.deepcopy(vae), cfg, out, attention, compact=True)
+    counts = {"transformer": sum(p.numel() for p in transformer.parameters()), "vae": sum(p.numel() for p in vae.parameters())}
+    meta = manifest(cfg, {"kind": "random-init", "seed": seed, "config": "tiny-c4g"}, attention, "f32", counts)
+    (out / "refiner.json").write_text(json.dumps(meta, indent=2) + "\n")
+    (out / "README.md").write_text(package_readme(meta))
+    (ref / "README.md").write_text(c4g_reference_readme(cfg, seed, inputs))
+    return meta
+
+
+def transformer_positions_case(transformer, cfg: RefinerConfig, seed: int) -> dict:
+    """Random inputs and C4G positions (keyframes at 500, 503, 509; rendered 0, 1) → velocity."""
+    gen = torch.Generator().manual_seed(seed)
+    f, h, w = cfg.latent_frames, cfg.latent_height, cfg.latent_width
+    n_vace = len(cfg.transformer["vace_layers"])
+    case = {
+        "latents": torch.randn(1, 16, f, h, w, generator=gen),
+        "timestep": torch.tensor([937.5]),
+        "text_embeddings": torch.randn(1, cfg.text_tokens, cfg.transformer["text_dim"], generator=gen),
+        "control": torch.randn(1, cfg.transformer["vace_in_channels"], f, h, w, generator=gen),
+        "control_scale": torch.ones(n_vace),
+        "positions": c4g_layout.positions([0, 3, 9][: cfg.keyframes], cfg.rendered_latent_frames),
+    }
+    v = c4g_layout.velocity(
+        transformer, case["latents"], float(case["timestep"][0]), case["text_embeddings"], case["control"], case["positions"]
+    )
+    return {**{k: t.numpy() for k, t in case.items()}, "velocity": v.numpy()}
 
 
 def load_peft_lora_with_diffusers(transformer, vae, peft_dir: Path):
@@ -330,8 +412,9 @@ def export_real(args) -> dict:
         height=args.height or base.height,
         width=args.width or base.width,
         text_tokens=args.text_tokens or base.text_tokens,
-        shift=shift,
-        steps=base.steps,
+        shift=c4g_layout.DEFAULTS["shift"] if args.layout == "c4g" else shift,
+        steps=c4g_layout.DEFAULTS["steps"] if args.layout == "c4g" else base.steps,
+        keyframes=args.keyframes if args.layout == "c4g" else 0,
         scheduler={**({"class": scheduler["_class_name"]} if "_class_name" in scheduler else {}), **{k: v for k, v in scheduler.items() if not k.startswith("_")}},
     )
     cfg.validate()
@@ -497,6 +580,40 @@ Captions through `WanVACEPipeline(tokenizer=T5TokenizerFast(tokenizer.json), tex
 """
 
 
+def c4g_reference_readme(cfg: RefinerConfig, seed: int, inputs: dict) -> str:
+    k, r = cfg.keyframes, cfg.rendered_latent_frames
+    lat = f"[1, 16, {cfg.latent_frames}, {cfg.latent_height}, {cfg.latent_width}]"
+    n = inputs["rendered"].shape[0]
+    return f"""# Reference outputs of C4G's refinement layout (PyTorch, CPU, float32)
+
+Made by `python -m c4g.wan.export --tiny --layout c4g` (c4g/wan/c4g_layout.py), seed {seed}, with diffusers'
+modules holding the same random weights as the ONNX graphs (float64 RoPE tables; the graphs use float32 ones).
+The layout: {k} keyframes, each VAE-encoded alone, then the {n} rendered frames padded to {cfg.frames} (the last
+repeated) and encoded as one chunk: {k} + {r} latent frames, latents {lat}. Temporal RoPE positions: keyframe
+source index + 500, then 0..{r - 1}. DiffSynth's Euler ("Wan" schedule: linspace(1, 0, steps + 1)[:-1], shifted),
+{cfg.steps} steps, shift {cfg.shift}, guidance {cfg.guidance_scale}.
+
+## pipeline_c4g.npz
+- inputs: `keyframes` [{k}, {cfg.height}, {cfg.width}, 3] and `rendered` [{n}, {cfg.height}, {cfg.width}, 3] in [0, 1] (multiples of
+  1/255); `keyframe_indices` [{k}] (int64, source-frame indices); `prompt_embeds`, `negative_prompt_embeds` [1, {cfg.text_tokens},
+  {cfg.transformer['text_dim']}]; `noise` {lat}.
+- `rendered_padded` [{cfg.frames}, H, W, 3]; `positions` [{cfg.latent_frames}] (int64).
+- `control` [1, 96, {cfg.latent_frames}, h, w]: [inactive 16 ; reactive 16 ; mask 64], keyframe slots first.
+- `sigmas` [steps + 1], `timesteps` [steps]: the schedule (timesteps sigma * 1000, f32, not rounded).
+- `velocity_first`: the conditional velocity of step 0; `step_latents`, `step_velocity_cond`, `step_velocity_uncond`
+  [steps, ...{lat}]: what each step saw and the two transformer outputs (guided = uncond + g (cond - uncond)).
+- `latents_final` {lat}; `decoder_input` [1, 16, {r}, h, w]: the rendered part, un-normalised;
+  `frames_out` [{n}, H, W, 3]: the refined frames (decoded chunk / 2 + 0.5, clamped, first {n}).
+
+## transformer_positions.npz
+Random `latents`, `timestep`, `text_embeddings`, `control`, `control_scale` and `positions` (keyframes at 500, 503, 509)
+→ `velocity` (the positioned transformer graph's check).
+
+## vae_frame.npz
+`frame` [1, 3, 1, H, W] uniform in [-1, 1] → `latents_mode` [1, 16, 1, h, w] (the one-frame encoder graph's check).
+"""
+
+
 # ----------------------------------------------------------------------------- CLI
 
 
@@ -507,10 +624,12 @@ def main(argv: list[str] | None = None) -> int:
     which.add_argument("--diffusers", metavar="DIR", help="a diffusers checkout of Wan2.1-VACE (transformer/, vae/, scheduler/)")
     which.add_argument("--random-init", action="store_true", help="random weights at --config's size")
     parser.add_argument("--config", choices=sorted(PRESETS), default="1.3b", help="architecture for --random-init")
+    parser.add_argument("--layout", choices=["vace", "c4g"], default="vace", help="VACE's sequence, or C4G's keyframes + rendered frames (c4g_layout.py)")
+    parser.add_argument("--keyframes", type=int, default=12, help="keyframe slots of the c4g layout (C4G trained with 12)")
     parser.add_argument("--out", required=True)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--name")
-    parser.add_argument("--frames", type=int, help="video frames (4k + 1); default 81")
+    parser.add_argument("--frames", type=int, help="video frames (4k + 1; the rendered frames in the c4g layout); default 81")
     parser.add_argument("--height", type=int, help="multiple of 16; default 480")
     parser.add_argument("--width", type=int, help="multiple of 16; default 832")
     parser.add_argument("--text-tokens", type=int, help="text embedding length; default 512")
@@ -520,7 +639,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu", help="where to trace (cuda is much faster at real sizes)")
     parser.add_argument("--text-encoder", action="store_true", help="also export umT5's encoder (~23 GB in f32) and tokenizer, so workers take captions")
     args = parser.parse_args(argv)
-    if args.tiny:
+    if args.tiny and args.layout == "c4g":
+        meta = export_tiny_c4g(Path(args.out), args.seed, args.attention)
+    elif args.tiny:
         meta = export_tiny(Path(args.out), args.seed, args.attention)
     else:
         meta = export_real(args)

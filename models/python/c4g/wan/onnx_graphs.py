@@ -35,6 +35,8 @@ import torch
 from torch import nn
 from torch.onnx import symbolic_helper
 
+from . import c4g_layout
+
 OPSET = 18
 IR_VERSION = 10  # ONNX Runtime 1.31 loads IR <= 13; opset 18 needs >= 8. onnx 1.23 would write 14.
 TWO_GB = 2**31
@@ -134,14 +136,19 @@ def fused_attention(enabled: bool):
 
 
 class TransformerGraph(nn.Module):
-    """(latents, timestep, text_embeddings, control, control_scale) → velocity, all f32 at the edges.
-    For an f16 transformer the inputs are cast to f16 inside the graph and the output back to f32."""
+    """(latents, timestep, text_embeddings, control, control_scale[, positions]) → velocity, all f32 at
+    the edges. For an f16 transformer the inputs are cast to f16 inside the graph and the output back
+    to f32. With `positions` (int64 [F'], see c4g_layout.ExplicitTimeRope) each latent frame's
+    temporal RoPE index is an input, so one graph serves VACE's layout (0..F'-1) and C4G's."""
 
-    def __init__(self, transformer: nn.Module):
+    def __init__(self, transformer: nn.Module, positions: bool = False):
         super().__init__()
         self.transformer = transformer
+        self.rope = c4g_layout.explicit_positions(transformer) if positions else None
 
-    def forward(self, latents, timestep, text_embeddings, control, control_scale):
+    def forward(self, latents, timestep, text_embeddings, control, control_scale, positions=None):
+        if self.rope is not None:
+            self.rope.positions = positions
         dtype = self.transformer.dtype
         out = self.transformer(
             hidden_states=latents.to(dtype),
@@ -179,6 +186,7 @@ class VaeDecoderGraph(nn.Module):
 def prepare_transformer_for_export(transformer: nn.Module) -> nn.Module:
     """Cast diffusers' float64 RoPE tables to float32 (ONNX Runtime's kernels and the graph are f32)."""
     rope = transformer.rope
+    rope = rope.rope if isinstance(rope, c4g_layout.ExplicitTimeRope) else rope
     rope.freqs_cos = rope.freqs_cos.float()
     rope.freqs_sin = rope.freqs_sin.float()
     return transformer
@@ -292,9 +300,17 @@ def _compact(proto: onnx.ModelProto) -> None:
 
 
 def export_transformer(
-    transformer: nn.Module, cfg, path: Path, fused: bool = True, external_data: bool | None = None, compact: bool = False
+    transformer: nn.Module,
+    cfg,
+    path: Path,
+    fused: bool = True,
+    external_data: bool | None = None,
+    compact: bool = False,
+    positions: bool = True,
 ) -> onnx.ModelProto:
-    """Export `transformer` (a WanVACETransformer3DModel) at `cfg`'s fixed sizes (a RefinerConfig)."""
+    """Export `transformer` (a WanVACETransformer3DModel) at `cfg`'s fixed sizes (a RefinerConfig).
+    `positions`: temporal RoPE positions as an input (`TransformerGraph`); the tiny VACE fixture's
+    graph predates it and is kept without, so both graph kinds stay tested."""
     prepare_transformer_for_export(transformer)
     tcfg = transformer.config
     f, h, w = cfg.latent_frames, cfg.latent_height, cfg.latent_width
@@ -307,12 +323,16 @@ def export_transformer(
         torch.randn(1, tcfg.vace_in_channels, f, h, w, generator=gen).to(device),
         torch.ones(len(tcfg.vace_layers), device=device),
     )
+    names = ["latents", "timestep", "text_embeddings", "control", "control_scale"]
+    if positions:
+        args += (torch.arange(f, device=device),)
+        names.append("positions")
     with fused_attention(fused):
         return export_graph(
-            TransformerGraph(transformer),
+            TransformerGraph(transformer, positions),
             args,
             path,
-            ["latents", "timestep", "text_embeddings", "control", "control_scale"],
+            names,
             ["velocity"],
             strip_prefix="transformer.",
             keep_names=True,
@@ -321,10 +341,14 @@ def export_transformer(
         )
 
 
-def export_vae(vae: nn.Module, cfg, encoder_path: Path, decoder_path: Path, compact: bool = False) -> None:
+def export_vae(vae: nn.Module, cfg, encoder_path: Path, decoder_path: Path, compact: bool = False, frame_encoder_path: Path | None = None) -> None:
+    """The chunk encoder (`cfg.frames` frames), the decoder (their latents) and, for C4G's layout, the
+    one-frame encoder its keyframes go through."""
     device = next(vae.parameters()).device
     gen = torch.Generator().manual_seed(0)
     video = (torch.rand(1, 3, cfg.frames, cfg.height, cfg.width, generator=gen) * 2 - 1).to(device)
-    latents = torch.randn(cfg.latent_shape, generator=gen).to(device)
+    latents = torch.randn(cfg.rendered_latent_shape, generator=gen).to(device)
     export_graph(VaeEncoderGraph(vae), (video,), encoder_path, ["video"], ["latents"], strip_prefix="vae.", keep_names=False, compact=compact)
     export_graph(VaeDecoderGraph(vae), (latents,), decoder_path, ["latents"], ["video"], strip_prefix="vae.", keep_names=False, compact=compact)
+    if frame_encoder_path is not None:
+        export_graph(VaeEncoderGraph(vae), (video[:, :, :1],), frame_encoder_path, ["video"], ["latents"], strip_prefix="vae.", keep_names=False, compact=compact)
