@@ -204,9 +204,35 @@ pub fn assemble(inactive: &[f32], reactive: &[f32], mask: &[f32]) -> Vec<f32> {
     out
 }
 
+/// Joins `[C, f_i, P]` parts (`frames_of[i]` frames of `plane` values each) along time into
+/// `[C, Σ f_i, P]`: how C4G's layout lays keyframe slots before the rendered part.
+pub fn concat_frames(
+    parts: &[Vec<f32>],
+    frames_of: &[usize],
+    channels: usize,
+    plane: usize,
+) -> Vec<f32> {
+    let total: usize = frames_of.iter().sum();
+    let mut out = Vec::with_capacity(channels * total * plane);
+    for c in 0..channels {
+        for (part, &f) in parts.iter().zip(frames_of) {
+            out.extend_from_slice(&part[c * f * plane..(c + 1) * f * plane]);
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn parts_join_along_time_channel_by_channel() {
+        // Two channels, one value a frame: a one-frame part [a0; a1] and a two-frame part
+        // [b00 b01; b10 b11].
+        let joined = concat_frames(&[vec![1.0, 2.0], vec![3.0, 4.0, 5.0, 6.0]], &[1, 2], 2, 1);
+        assert_eq!(joined, vec![1.0, 3.0, 4.0, 2.0, 5.0, 6.0]);
+    }
 
     #[test]
     fn eighty_one_frames_resample_to_the_documented_twenty_one() {

@@ -5,12 +5,15 @@
 //! umT5's text encoder when the package has one), merging a [`LoraSpec`] into the transformer's
 //! weights; captions become prompt embeddings through [`text`]; [`Pipeline::refine`] turns the
 //! video and its mask into the [`control`] input, denoises seeded noise with a flow-matching
-//! [`sampler`] and decodes the result.
+//! [`sampler`] and decodes the result. A package's [`Layout`] is VACE's (one video, context frames
+//! masked) or C4G's (keyframes encoded one by one before the rendered frames, with explicit
+//! temporal positions: [`layout`]).
 //!
 //! | module | holds |
 //! |---|---|
 //! | [`package`] | `refiner.json` and the package contract |
 //! | [`control`] | the VACE control tensor: mask split, unshuffle, temporal resampling, latent normalisation |
+//! | [`layout`] | C4G's layout: keyframes, the rendered frames' padding, temporal positions |
 //! | [`sampler`] | the sigma schedule, Euler and UniPC |
 //! | [`text`] | captions to prompt embeddings: clean-up, umT5's tokenizer, the encoder graph |
 //! | [`lora`] | LoRA files in PEFT and Wan naming, name mapping, the merge |
@@ -27,6 +30,7 @@
 
 pub mod control;
 mod error;
+pub mod layout;
 pub mod lora;
 mod noise;
 pub mod onnx;
@@ -43,8 +47,9 @@ pub use c4g_runtime::{
 };
 pub use control::Mask;
 pub use error::{RefinerError, Result};
+pub use layout::Keyframe;
 pub use lora::{Lora, LoraSpec};
 pub use noise::gaussian_noise;
-pub use package::{RefinerManifest, RefinerPackage};
+pub use package::{KeyframeLayout, Layout, RefinerManifest, RefinerPackage};
 pub use pipeline::{Pipeline, PipelineOptions, RefineOutput, RefineRequest};
 pub use sampler::{Sampler, Schedule, Solver};

@@ -4,6 +4,11 @@
 //! the VAE encoder and decoder, and the manifest that fixes the video size, the latent grid and
 //! the latent normalisation. Sizes are fixed per package: the graphs are exported for one
 //! `frames × height × width`.
+//!
+//! A package also declares its [`Layout`]: how a run's latent frames are laid out. VACE's (the
+//! default) is one video, context and rendered frames together; C4G's puts keyframes, each
+//! encoded alone through a one-frame VAE encoder, before the rendered frames, and gives every
+//! latent frame an explicit temporal position (see `c4g/wan/c4g_layout.py`).
 
 use std::path::{Path, PathBuf};
 
@@ -28,7 +33,8 @@ pub struct RefinerManifest {
     pub format_version: u32,
     /// The package's name.
     pub name: String,
-    /// Video frames per run (context frames first, then rendered frames).
+    /// Video frames per run: context frames first, then rendered frames (VACE's layout); the
+    /// rendered frames only (C4G's layout, whose keyframes come on their own).
     pub frames: usize,
     /// Frame height in pixels.
     pub height: usize,
@@ -41,10 +47,49 @@ pub struct RefinerManifest {
     pub latent: LatentSpec,
     /// Main-transformer layers that receive a VACE hint; one control scale per entry.
     pub vace_layers: Vec<usize>,
+    /// How a run's latent frames are laid out (VACE's when the manifest predates layouts).
+    #[serde(default)]
+    pub layout: Layout,
     /// The text-embedding input.
     pub text: TextSpec,
     /// The graphs, relative to the package directory.
     pub files: Files,
+}
+
+/// How a run's latent frames are laid out.
+#[derive(Debug, Clone, PartialEq, Default, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Layout {
+    /// diffusers' WanVACEPipeline: one `frames`-frame video (context frames kept by the mask),
+    /// encoded as one chunk; temporal positions 0, 1, 2, ...
+    #[default]
+    Vace,
+    /// C4G's own pipeline (its DiffSynth-Studio fork), which its published LoRA was trained with.
+    C4g(KeyframeLayout),
+}
+
+/// C4G's layout: `keyframes` latent slots, then the rendered video's latent frames.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+pub struct KeyframeLayout {
+    /// Keyframe slots: exactly this many context frames per run.
+    pub keyframes: usize,
+    /// A keyframe's temporal position is its source-frame index plus this (500).
+    pub keyframe_position_offset: i64,
+    /// Rows of the transformer's RoPE table: every position must be below this.
+    pub rope_positions: i64,
+    /// The public code's sampler defaults.
+    pub sampler: LayoutSampler,
+}
+
+/// Sampler defaults a layout declares.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+pub struct LayoutSampler {
+    /// Denoising steps.
+    pub steps: usize,
+    /// Timestep shift.
+    pub shift: f64,
+    /// Classifier-free guidance.
+    pub guidance_scale: f32,
 }
 
 /// The latent grid.
@@ -52,7 +97,8 @@ pub struct RefinerManifest {
 pub struct LatentSpec {
     /// Latent channels (16).
     pub channels: usize,
-    /// Latent frames: `(frames + 3) / 4`.
+    /// Latent frames the transformer takes: `(frames + 3) / 4`, after the keyframe slots in
+    /// C4G's layout.
     pub frames: usize,
     /// `height / 8`.
     pub height: usize,
@@ -82,6 +128,9 @@ pub struct Files {
     pub vae_encoder: String,
     /// (Un-normalised) latents to video.
     pub vae_decoder: String,
+    /// One frame to its (un-normalised) latent frame: how C4G's layout encodes keyframes.
+    #[serde(default)]
+    pub vae_frame_encoder: Option<String>,
     /// umT5's encoder: token ids and mask to hidden states (optional, with `tokenizer`).
     #[serde(default)]
     pub text_encoder: Option<String>,
@@ -95,6 +144,19 @@ impl RefinerManifest {
     pub fn latent_len(&self) -> usize {
         let l = &self.latent;
         l.channels * l.frames * l.height * l.width
+    }
+
+    /// Latent frames of the `frames`-frame video (what the VAE graphs take and give).
+    pub fn video_latent_frames(&self) -> usize {
+        latent_frames(self.frames)
+    }
+
+    /// Keyframe slots before the video's latent frames (0 in VACE's layout).
+    pub fn keyframe_slots(&self) -> usize {
+        match &self.layout {
+            Layout::Vace => 0,
+            Layout::C4g(k) => k.keyframes,
+        }
     }
 
     /// Values per `[H, W, 3]` frame.
@@ -126,7 +188,7 @@ impl RefinerManifest {
         let l = &self.latent;
         let expected = (
             LATENT_CHANNELS,
-            latent_frames(self.frames),
+            self.keyframe_slots() + latent_frames(self.frames),
             self.height / SPATIAL_FACTOR,
             self.width / SPATIAL_FACTOR,
         );
@@ -151,6 +213,25 @@ impl RefinerManifest {
         }
         if self.vace_layers.is_empty() || self.text.tokens == 0 || self.text.dim == 0 {
             return Err("vace_layers, text.tokens and text.dim must not be empty".to_owned());
+        }
+        if let Layout::C4g(k) = &self.layout {
+            if k.keyframes == 0 || self.files.vae_frame_encoder.is_none() {
+                return Err(
+                    "the c4g layout needs at least one keyframe slot and files.vae_frame_encoder"
+                        .to_owned(),
+                );
+            }
+            // The rendered latents take positions 0..R-1 and keyframes offset + index.
+            if k.keyframe_position_offset < latent_frames(self.frames) as i64
+                || k.keyframe_position_offset >= k.rope_positions
+            {
+                return Err(format!(
+                    "keyframe_position_offset {} must lie between the rendered latent frames ({}) and rope_positions ({})",
+                    k.keyframe_position_offset,
+                    latent_frames(self.frames),
+                    k.rope_positions
+                ));
+            }
         }
         Ok(())
     }
@@ -187,7 +268,11 @@ impl RefinerPackage {
             ));
         }
         let required = [&files.transformer, &files.vae_encoder, &files.vae_decoder];
-        let optional = [&files.text_encoder, &files.tokenizer];
+        let optional = [
+            &files.text_encoder,
+            &files.tokenizer,
+            &files.vae_frame_encoder,
+        ];
         for file in required.into_iter().chain(optional.into_iter().flatten()) {
             if !dir.join(file).is_file() {
                 return Err(invalid(format!("{file} is missing")));
@@ -219,6 +304,14 @@ impl RefinerPackage {
     /// Path of the VAE decoder graph.
     pub fn vae_decoder_path(&self) -> PathBuf {
         self.dir.join(&self.manifest.files.vae_decoder)
+    }
+
+    /// Path of the one-frame VAE encoder graph (C4G's layout).
+    pub fn vae_frame_encoder_path(&self) -> Option<PathBuf> {
+        Some(
+            self.dir
+                .join(self.manifest.files.vae_frame_encoder.as_ref()?),
+        )
     }
 
     /// Paths of the tokenizer and the text-encoder graph, when the package has them.
@@ -292,6 +385,51 @@ mod tests {
         assert!(err.to_string().contains("tokenizer"), "{err}");
         let p = RefinerPackage::open(write_package(&manifest_json(9, 3)).path()).unwrap();
         assert_eq!(p.text_encoder_paths(), None);
+    }
+
+    #[test]
+    fn a_c4g_layout_counts_its_keyframe_slots_and_needs_a_frame_encoder() {
+        let layout = r#""layout": {"kind": "c4g", "keyframes": 3, "keyframe_position_offset": 500,
+            "rope_positions": 1024, "sequence": "ignored",
+            "sampler": {"solver": "euler", "schedule": "diffsynth", "steps": 50, "shift": 5.0, "guidance_scale": 5.0}},"#;
+        let json =
+            manifest_json(5, 5).replace(r#""vace_layers""#, &format!(r#"{layout} "vace_layers""#));
+        let err = RefinerPackage::open(write_package(&json).path()).unwrap_err();
+        assert!(err.to_string().contains("vae_frame_encoder"), "{err}");
+        let json = json.replace(
+            r#""vae_decoder": "vae_decoder.onnx"}"#,
+            r#""vae_decoder": "vae_decoder.onnx", "vae_frame_encoder": "frame.onnx"}"#,
+        );
+        let dir = write_package(&json);
+        std::fs::write(dir.path().join("frame.onnx"), b"").unwrap();
+        let p = RefinerPackage::open(dir.path()).unwrap();
+        let m = p.manifest();
+        assert_eq!(
+            (m.keyframe_slots(), m.video_latent_frames(), m.latent.frames),
+            (3, 2, 5)
+        );
+        let Layout::C4g(k) = &m.layout else {
+            panic!("{:?}", m.layout)
+        };
+        assert_eq!((k.sampler.steps, k.sampler.shift), (50, 5.0));
+        // Without the keyframe slots the grid no longer matches.
+        let dir = write_package(
+            &json.replace(r#""frames": 5, "height": 4"#, r#""frames": 2, "height": 4"#),
+        );
+        std::fs::write(dir.path().join("frame.onnx"), b"").unwrap();
+        assert!(
+            RefinerPackage::open(dir.path())
+                .unwrap_err()
+                .to_string()
+                .contains("latent grid")
+        );
+        assert_eq!(
+            RefinerPackage::open(write_package(&manifest_json(9, 3)).path())
+                .unwrap()
+                .manifest()
+                .layout,
+            Layout::Vace
+        );
     }
 
     #[test]

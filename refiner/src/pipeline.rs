@@ -8,6 +8,10 @@
 //!    (two with classifier-free guidance: `v = v_u + g·(v_c − v_u)`), then the sampler;
 //! 4. the final latents un-normalised and VAE-decoded, back to frames in [0, 1].
 //!
+//! In C4G's layout (`layout`) step 2 encodes each keyframe alone and the rendered frames, padded,
+//! as one chunk; every transformer run gets the latent frames' temporal positions; and step 4
+//! decodes the rendered part only.
+//!
 //! The graphs' sessions are created once at [`Pipeline::load`], the transformer's with the LoRA
 //! already merged into its weights.
 
@@ -18,11 +22,12 @@ use c4g_runtime::{Graph, RuntimeError, SessionOptions, create_session};
 use ort::value::TensorRef;
 
 use crate::control::{self, LatentStats, Mask};
+use crate::layout::{self, Keyframe};
 use crate::lora::merge::merged_weights;
 use crate::lora::{Lora, LoraSpec};
 use crate::noise::gaussian_noise;
 use crate::onnx::OnnxWeights;
-use crate::package::{RefinerManifest, RefinerPackage};
+use crate::package::{KeyframeLayout, Layout, RefinerManifest, RefinerPackage};
 use crate::sampler::{Sampler, Schedule, Solver};
 use crate::text::TextEncoder;
 use crate::weights_session::create_session_with_weights;
@@ -44,10 +49,13 @@ pub struct PipelineOptions {
 #[derive(Debug, Clone, PartialEq)]
 pub struct RefineRequest {
     /// `F` frames, each `[H, W, 3]` RGB in [0, 1], row-major: context frames first, then the
-    /// rendered frames to regenerate.
+    /// rendered frames to regenerate. In C4G's layout: the rendered frames only, 1 to `F` (padded
+    /// by repeating the last).
     pub video: Vec<Vec<f32>>,
-    /// Which frames (or pixels) to regenerate.
+    /// Which frames (or pixels) to regenerate; in C4G's layout every rendered frame.
     pub mask: Mask,
+    /// C4G's layout: the keyframes, as many as the package has slots (empty in VACE's).
+    pub keyframes: Vec<Keyframe>,
     /// The prompt's text embedding, `[L, D]` (zero-padded to L tokens).
     pub text_embeddings: Vec<f32>,
     /// The negative prompt's embedding, `[L, D]`; needed when `guidance != 1`.
@@ -77,6 +85,7 @@ impl RefineRequest {
         Self {
             video,
             mask,
+            keyframes: Vec::new(),
             text_embeddings,
             negative_embeddings: None,
             steps: 30,
@@ -89,6 +98,27 @@ impl RefineRequest {
         }
     }
 
+    /// A request in C4G's layout (`keyframes`, then `rendered` frames to regenerate), with the
+    /// layout's sampler defaults: DiffSynth's Euler and the steps, shift and guidance `layout`
+    /// declares (the public code's 50, 5 and 5).
+    pub fn keyframed(
+        layout: &KeyframeLayout,
+        keyframes: Vec<Keyframe>,
+        rendered: Vec<Vec<f32>>,
+        text_embeddings: Vec<f32>,
+    ) -> Self {
+        let mask = Mask::Frames(vec![true; rendered.len()]);
+        let defaults = &layout.sampler;
+        Self {
+            keyframes,
+            steps: defaults.steps,
+            shift: defaults.shift,
+            guidance: defaults.guidance_scale,
+            sampler: Sampler::DiffSynthEuler,
+            ..Self::new(rendered, mask, text_embeddings)
+        }
+    }
+
     fn uses_guidance(&self) -> bool {
         self.guidance != 1.0
     }
@@ -97,9 +127,11 @@ impl RefineRequest {
 /// What a refinement returns.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RefineOutput {
-    /// `F` frames, each `[H, W, 3]` RGB in [0, 1].
+    /// The refined frames, each `[H, W, 3]` RGB in [0, 1]: all `F` in VACE's layout, the
+    /// rendered frames given (padding dropped) in C4G's.
     pub frames: Vec<Vec<f32>>,
-    /// The final normalised latents `[16, F', h, w]`, before the VAE decoder.
+    /// The final normalised latents `[16, F', h, w]`, before the VAE decoder (keyframe slots
+    /// included in C4G's layout).
     pub latents: Vec<f32>,
 }
 
@@ -110,6 +142,10 @@ pub struct Pipeline {
     transformer: Graph,
     vae_encoder: Graph,
     vae_decoder: Graph,
+    /// C4G's layout: the one-frame encoder of keyframes.
+    vae_frame_encoder: Option<Graph>,
+    /// Whether the transformer takes temporal positions (graphs exported before they did: no).
+    positions_input: bool,
     text_encoder: Option<TextEncoder>,
     merged_weights: usize,
 }
@@ -145,8 +181,20 @@ impl Pipeline {
             }
             None => (create_session(&transformer_path, session)?, 0),
         };
+        let positions_input = transformer.inputs().iter().any(|i| i.name() == "positions");
+        if matches!(m.layout, Layout::C4g(_)) && !positions_input {
+            return Err(RefinerError::InvalidPackage {
+                dir: package.dir().to_path_buf(),
+                reason: "the c4g layout needs a transformer with a `positions` input (re-export it with c4g.wan.export)".to_owned(),
+            });
+        }
         let vae_encoder = create_session(&package.vae_encoder_path(), session)?;
         let vae_decoder = create_session(&package.vae_decoder_path(), session)?;
+        let vae_frame_encoder = package
+            .vae_frame_encoder_path()
+            .map(|path| create_session(&path, session))
+            .transpose()?
+            .map(|s| Graph::new("VAE frame encoder", s));
         let text_encoder = match package.text_encoder_paths() {
             Some((tokenizer, graph)) if !options.skip_text_encoder => Some(TextEncoder::load(
                 &tokenizer,
@@ -163,6 +211,8 @@ impl Pipeline {
             transformer: Graph::new("transformer", transformer),
             vae_encoder: Graph::new("VAE encoder", vae_encoder),
             vae_decoder: Graph::new("VAE decoder", vae_decoder),
+            vae_frame_encoder,
+            positions_input,
             text_encoder,
             merged_weights: merged,
         })
@@ -212,7 +262,16 @@ impl Pipeline {
         self.check_request(request)?;
         let schedule = Schedule::for_sampler(request.sampler, request.steps, request.shift)?;
         let total = schedule.steps();
-        let control = self.control(&request.video, &request.mask)?;
+        let (control, positions) = match &self.manifest().layout {
+            Layout::Vace => (
+                self.control(&request.video, &request.mask)?,
+                self.default_positions(),
+            ),
+            Layout::C4g(k) => (
+                self.keyframe_control(&request.keyframes, &request.video)?,
+                layout::positions(k, &request.keyframes, self.manifest().video_latent_frames())?,
+            ),
+        };
         if progress(0, total).is_break() {
             return Err(RefinerError::Cancelled {
                 completed: 0,
@@ -227,7 +286,8 @@ impl Pipeline {
         let timesteps = schedule.timesteps().to_vec();
         let mut solver = Solver::new(request.sampler, schedule);
         for (i, &t) in timesteps.iter().enumerate() {
-            let velocity = self.guided_velocity(request, &latents, t, &control, &scales)?;
+            let velocity =
+                self.guided_velocity(request, &latents, t, &control, &scales, &positions)?;
             latents = solver.step(&velocity, &latents)?;
             if progress(i + 1, total).is_break() {
                 return Err(RefinerError::Cancelled {
@@ -236,7 +296,10 @@ impl Pipeline {
                 });
             }
         }
-        let frames = self.decode(&latents)?;
+        let mut frames = self.decode(&latents)?;
+        if matches!(self.manifest().layout, Layout::C4g(_)) {
+            frames.truncate(request.video.len());
+        }
         Ok(RefineOutput { frames, latents })
     }
 
@@ -248,8 +311,11 @@ impl Pipeline {
         timestep: f32,
         control: &[f32],
         scales: &[f32],
+        positions: &[i64],
     ) -> Result<Vec<f32>> {
-        let cond = self.velocity(latents, timestep, &request.text_embeddings, control, scales)?;
+        let velocity =
+            |text: &[f32]| self.velocity_at(latents, timestep, text, control, scales, positions);
+        let cond = velocity(&request.text_embeddings)?;
         let Some(negative) = request
             .negative_embeddings
             .as_deref()
@@ -257,7 +323,7 @@ impl Pipeline {
         else {
             return Ok(cond);
         };
-        let uncond = self.velocity(latents, timestep, negative, control, scales)?;
+        let uncond = velocity(negative)?;
         let g = request.guidance;
         Ok(uncond
             .iter()
@@ -281,14 +347,84 @@ impl Pipeline {
         Ok(control::assemble(&inactive, &reactive, &mask))
     }
 
+    /// C4G's layout: the `[96, K + R, h, w]` control tensor for `keyframes` and the `rendered`
+    /// frames (`[H, W, 3]` in [0, 1]). Each keyframe goes through the one-frame encoder (its mask
+    /// is 0, so its reactive half is a blank frame's encoding); the rendered frames, padded to
+    /// `F`, go through the chunk encoder with a mask of 1. Keyframe slots come first.
+    pub fn keyframe_control(
+        &self,
+        keyframes: &[Keyframe],
+        rendered: &[Vec<f32>],
+    ) -> Result<Vec<f32>> {
+        let m = self.manifest();
+        let (f, h, w) = (m.frames, m.height, m.width);
+        let padded = layout::pad_rendered(rendered, f)?;
+        let video = to_model_video(&padded, f, h, w)?;
+        let ones = vec![1.0; f * h * w];
+        let (inactive, reactive) = control::split_video(&video, &ones);
+        let encode = |x: &[f32]| -> Result<Vec<f32>> {
+            let mut latents = self.vae_encode(x)?;
+            self.stats.normalize(&mut latents);
+            Ok(latents)
+        };
+        let encode_frame = |x: &[f32]| -> Result<Vec<f32>> {
+            let mut latents = self.vae_encode_frame(x)?;
+            self.stats.normalize(&mut latents);
+            Ok(latents)
+        };
+        let blank = encode_frame(&vec![0.0; 3 * h * w])?;
+        let mut inactive_parts = Vec::with_capacity(keyframes.len() + 1);
+        for (i, k) in keyframes.iter().enumerate() {
+            let frame = to_model_video(std::slice::from_ref(&k.frame), 1, h, w)
+                .map_err(|e| RefinerError::InvalidRequest(format!("keyframe {i}: {e}")))?;
+            inactive_parts.push(encode_frame(&frame)?);
+        }
+        let r = m.video_latent_frames();
+        let mut frames_of = vec![1; keyframes.len()];
+        frames_of.push(r);
+        inactive_parts.push(encode(&inactive)?);
+        let mut reactive_parts = vec![blank; keyframes.len()];
+        reactive_parts.push(encode(&reactive)?);
+        let plane = m.latent.height * m.latent.width;
+        let channels = control::LATENT_CHANNELS;
+        let inactive = control::concat_frames(&inactive_parts, &frames_of, channels, plane);
+        let reactive = control::concat_frames(&reactive_parts, &frames_of, channels, plane);
+        let mask = control::concat_frames(
+            &[
+                vec![0.0; control::MASK_CHANNELS * keyframes.len() * plane],
+                control::latent_mask(&ones, f, h, w),
+            ],
+            &[keyframes.len(), r],
+            control::MASK_CHANNELS,
+            plane,
+        );
+        Ok(control::assemble(&inactive, &reactive, &mask))
+    }
+
+    /// VAE-encodes one frame `[3, 1, H, W]` in [-1, 1] to its un-normalised latent frame
+    /// `[16, 1, h, w]` (C4G's layout; an error for a package without the frame encoder).
+    pub fn vae_encode_frame(&self, frame: &[f32]) -> Result<Vec<f32>> {
+        let m = self.manifest();
+        let encoder = self.vae_frame_encoder.as_ref().ok_or_else(|| {
+            RefinerError::InvalidRequest("this package has no one-frame VAE encoder".to_owned())
+        })?;
+        let shape = [1, 3, 1, m.height, m.width];
+        check_len("frame", frame.len(), &shape)?;
+        let input = tensor("video", &shape, frame)?;
+        let latent_shape = [1, m.latent.channels, 1, m.latent.height, m.latent.width];
+        Ok(encoder.run(ort::inputs!["video" => input], |outputs| {
+            Ok(outputs.f32("latents", &latent_shape)?.to_vec())
+        })?)
+    }
+
     /// VAE-encodes a `[3, F, H, W]` video in [-1, 1] to un-normalised latents `[16, F', h, w]`
-    /// (the posterior mode).
+    /// (the posterior mode; `F'` the video's latent frames).
     pub fn vae_encode(&self, video: &[f32]) -> Result<Vec<f32>> {
         let m = self.manifest();
         let shape = [1, 3, m.frames, m.height, m.width];
         check_len("video", video.len(), &shape)?;
         let input = tensor("video", &shape, video)?;
-        let latent_shape = self.latent_shape();
+        let latent_shape = self.video_latent_shape();
         Ok(self
             .vae_encoder
             .run(ort::inputs!["video" => input], |outputs| {
@@ -298,7 +434,7 @@ impl Pipeline {
 
     /// One transformer run: the velocity at `latents` (normalised, `[16, F', h, w]`) and
     /// `timestep`, for one text embedding `[L, D]`, the control tensor and one scale per VACE
-    /// layer.
+    /// layer, at temporal positions 0..F' (VACE's layout).
     pub fn velocity(
         &self,
         latents: &[f32],
@@ -306,6 +442,28 @@ impl Pipeline {
         text_embeddings: &[f32],
         control: &[f32],
         control_scales: &[f32],
+    ) -> Result<Vec<f32>> {
+        let positions = self.default_positions();
+        self.velocity_at(
+            latents,
+            timestep,
+            text_embeddings,
+            control,
+            control_scales,
+            &positions,
+        )
+    }
+
+    /// [`velocity`](Self::velocity) with each latent frame's temporal position given (C4G's
+    /// layout); a transformer without a `positions` input takes only 0..F'.
+    pub fn velocity_at(
+        &self,
+        latents: &[f32],
+        timestep: f32,
+        text_embeddings: &[f32],
+        control: &[f32],
+        control_scales: &[f32],
+        positions: &[i64],
     ) -> Result<Vec<f32>> {
         let m = self.manifest();
         let latent_shape = self.latent_shape();
@@ -317,34 +475,60 @@ impl Pipeline {
         check_len("text embedding", text_embeddings.len(), &text_shape)?;
         check_len("control", control.len(), &control_shape)?;
         check_len("control scales", control_scales.len(), &scale_shape)?;
+        if positions.len() != l.frames {
+            return Err(RefinerError::InvalidRequest(format!(
+                "{} temporal positions for {} latent frames",
+                positions.len(),
+                l.frames
+            )));
+        }
         let timestep = [timestep];
-        let inputs = ort::inputs![
+        let mut inputs = ort::inputs![
             "latents" => tensor("latents", &latent_shape, latents)?,
             "timestep" => tensor("timestep", &[1], &timestep)?,
             "text_embeddings" => tensor("text_embeddings", &text_shape, text_embeddings)?,
             "control" => tensor("control", &control_shape, control)?,
             "control_scale" => tensor("control_scale", &scale_shape, control_scales)?,
         ];
+        if self.positions_input {
+            let positions = TensorRef::from_array_view(([positions.len()], positions))
+                .map_err(RuntimeError::ort("preparing the positions tensor"))?;
+            inputs.push(("positions".into(), positions.into()));
+        } else if positions.iter().zip(0..).any(|(&p, i)| p != i) {
+            return Err(RefinerError::InvalidRequest(
+                "this package's transformer takes no temporal positions (only VACE's 0, 1, 2, ...)"
+                    .to_owned(),
+            ));
+        }
         Ok(self.transformer.run(inputs, |outputs| {
             Ok(outputs.f32("velocity", &latent_shape)?.to_vec())
         })?)
     }
 
     /// Un-normalises `latents` (`[16, F', h, w]`), VAE-decodes them and returns `F` frames
-    /// `[H, W, 3]` in [0, 1].
+    /// `[H, W, 3]` in [0, 1]. In C4G's layout only the rendered part is decoded: each keyframe
+    /// slot would decode alone, to a frame that is discarded.
     pub fn decode(&self, latents: &[f32]) -> Result<Vec<Vec<f32>>> {
-        let mut raw = latents.to_vec();
+        check_len("latents", latents.len(), &self.latent_shape())?;
+        let m = self.manifest();
+        let plane = m.latent.height * m.latent.width;
+        let (slots, r) = (m.keyframe_slots(), m.video_latent_frames());
+        let mut raw: Vec<f32> = latents
+            .chunks_exact(m.latent.frames * plane)
+            .flat_map(|channel| &channel[slots * plane..(slots + r) * plane])
+            .copied()
+            .collect();
         self.stats.denormalize(&mut raw);
         let video = self.vae_decode(&raw)?;
         let m = self.manifest();
         Ok(to_frames(&video, m.frames, m.height, m.width))
     }
 
-    /// VAE-decodes un-normalised latents `[16, F', h, w]` to a `[3, F, H, W]` video (about
-    /// [-1, 1], not clamped).
+    /// VAE-decodes un-normalised latents `[16, F', h, w]` (the video's latent frames) to a
+    /// `[3, F, H, W]` video (about [-1, 1], not clamped).
     pub fn vae_decode(&self, latents: &[f32]) -> Result<Vec<f32>> {
         let m = self.manifest();
-        let latent_shape = self.latent_shape();
+        let latent_shape = self.video_latent_shape();
         check_len("latents", latents.len(), &latent_shape)?;
         let input = tensor("latents", &latent_shape, latents)?;
         let shape = [1, 3, m.frames, m.height, m.width];
@@ -360,9 +544,42 @@ impl Pipeline {
         [1, l.channels, l.frames, l.height, l.width]
     }
 
+    /// The VAE graphs' latents: the video's latent frames, without keyframe slots.
+    fn video_latent_shape(&self) -> [usize; 5] {
+        let m = self.manifest();
+        let l = &m.latent;
+        [1, l.channels, m.video_latent_frames(), l.height, l.width]
+    }
+
+    /// VACE's temporal positions: 0, 1, 2, ... per latent frame.
+    fn default_positions(&self) -> Vec<i64> {
+        (0..self.manifest().latent.frames as i64).collect()
+    }
+
     fn check_request(&self, r: &RefineRequest) -> Result<()> {
         let m = self.manifest();
         let invalid = |reason: String| Err(RefinerError::InvalidRequest(reason));
+        match &m.layout {
+            Layout::Vace if !r.keyframes.is_empty() => {
+                return invalid(
+                    "keyframes are C4G's layout; this package has VACE's (put context frames in the video, masked 0)".to_owned(),
+                );
+            }
+            Layout::C4g(k) if r.keyframes.len() != k.keyframes => {
+                return invalid(format!(
+                    "{} keyframes given; this package's layout takes exactly {}",
+                    r.keyframes.len(),
+                    k.keyframes
+                ));
+            }
+            Layout::C4g(_) if r.mask != Mask::Frames(vec![true; r.video.len()]) => {
+                return invalid(
+                    "in C4G's layout every rendered frame is regenerated: the mask must be all frames"
+                        .to_owned(),
+                );
+            }
+            _ => {}
+        }
         if r.text_embeddings.len() != m.text_len() {
             return invalid(format!(
                 "text_embeddings has {} values, the package takes [{}, {}]",

@@ -13,6 +13,9 @@
 //! - Euler reproduces `FlowMatchEulerDiscreteScheduler(shift)`, whose sigmas differ slightly
 //!   (its range ends at the shifted σ of training timestep 1, and it shifts twice) and whose
 //!   timesteps are not rounded.
+//! - DiffSynth's Euler reproduces the sampler C4G's own refinement pipeline runs (DiffSynth-Studio's
+//!   `FlowMatchScheduler` as its Wan pipelines set it: sigmas from exactly 1, shifted once, timesteps
+//!   not rounded).
 
 use crate::{RefinerError, Result};
 
@@ -27,6 +30,9 @@ pub enum Sampler {
     UniPc,
     /// First-order Euler: `x_next = x + (σ_next − σ)·v`.
     Euler,
+    /// The same Euler step on DiffSynth's "Wan" schedule ([`Schedule::diffsynth`]): C4G's
+    /// layout's default.
+    DiffSynthEuler,
 }
 
 /// The noise levels of one run: `steps + 1` sigmas ending at 0, and the timestep the model sees at
@@ -109,12 +115,30 @@ impl Schedule {
         Ok(Self { sigmas, timesteps })
     }
 
+    /// The schedule DiffSynth-Studio's `FlowMatchScheduler` sets for its Wan pipelines
+    /// (`sigma_max` 1, `sigma_min` 0, `extra_one_step`), which C4G's refinement pipeline runs:
+    /// base sigmas `linspace(1, 0, steps + 1)[:-1]`, shifted once, then a final 0; timesteps are
+    /// `σ'·1000`, not rounded. Computed in f64, stored in f32.
+    pub fn diffsynth(steps: usize, shift: f64) -> Result<Self> {
+        check_steps_and_shift(steps, shift)?;
+        let train = TRAIN_TIMESTEPS as f64;
+        let shifted: Vec<f64> = (0..steps)
+            .map(|k| shift_sigma(linspace(1.0, 0.0, steps + 1, k), shift))
+            .collect();
+        let mut sigmas: Vec<f32> = shifted.iter().map(|&s| s as f32).collect();
+        sigmas.push(0.0);
+        let timesteps = shifted.iter().map(|&s| (s * train) as f32).collect();
+        Ok(Self { sigmas, timesteps })
+    }
+
     /// The schedule the reference pipeline runs `sampler` on: [`unipc`](Self::unipc) for UniPC,
-    /// [`flow_match_euler`](Self::flow_match_euler) for Euler.
+    /// [`flow_match_euler`](Self::flow_match_euler) for Euler, [`diffsynth`](Self::diffsynth)
+    /// for DiffSynth's Euler.
     pub fn for_sampler(sampler: Sampler, steps: usize, shift: f64) -> Result<Self> {
         match sampler {
             Sampler::UniPc => Self::unipc(steps, shift),
             Sampler::Euler => Self::flow_match_euler(steps, shift),
+            Sampler::DiffSynthEuler => Self::diffsynth(steps, shift),
         }
     }
 
@@ -210,7 +234,7 @@ impl Solver {
     /// A fresh solver at the start of `schedule`.
     pub fn new(sampler: Sampler, schedule: Schedule) -> Self {
         let method = match sampler {
-            Sampler::Euler => Method::Euler,
+            Sampler::Euler | Sampler::DiffSynthEuler => Method::Euler,
             Sampler::UniPc => Method::UniPc(UniPcState::default()),
         };
         Self {
@@ -381,6 +405,23 @@ impl UniPcState {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_diffsynth_schedule_starts_at_one_and_shifts_once() {
+        // linspace(1, 0, 5)[:-1] = [1, 0.75, 0.5, 0.25], shifted by 5: [1, 0.9375, 5/6, 0.625].
+        let s = Schedule::diffsynth(4, 5.0).unwrap();
+        let expected = [1.0, 0.9375, 5.0 / 6.0, 0.625, 0.0];
+        for (got, want) in s.sigmas().iter().zip(expected) {
+            assert!((f64::from(*got) - want).abs() < 1e-7, "{:?}", s.sigmas());
+        }
+        assert_eq!(s.timesteps()[0], 1000.0);
+        assert_eq!(s.timesteps()[3], 625.0);
+        assert!((s.timesteps()[2] - 833.333_3).abs() < 1e-3);
+        assert_eq!(
+            Schedule::for_sampler(Sampler::DiffSynthEuler, 4, 5.0).unwrap(),
+            s
+        );
+    }
 
     #[test]
     fn the_wan_schedule_matches_the_documented_test_vector() {

@@ -18,6 +18,11 @@ pub fn reference_dir() -> PathBuf {
     fixture_dir().join("reference")
 }
 
+/// The same models in C4G's layout (3 keyframes, 5 rendered frames), with its own references.
+pub fn c4g_fixture_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../models/fixtures/wan-vace-tiny-c4g")
+}
+
 /// Why the tests that need the fixture cannot run here, if they cannot. Outside CI a missing
 /// piece skips the test with a message; in CI (`CI` set) it fails, so a misconfigured CI cannot
 /// pass by running nothing.
@@ -61,7 +66,12 @@ pub struct Npz(NpzReader<File>);
 
 impl Npz {
     pub fn open(name: &str) -> Self {
-        let path = reference_dir().join(name);
+        Self::open_in(&fixture_dir(), name)
+    }
+
+    /// An archive under `package/reference/`.
+    pub fn open_in(package: &std::path::Path, name: &str) -> Self {
+        let path = package.join("reference").join(name);
         Self(
             NpzReader::new(File::open(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display())))
                 .unwrap(),
@@ -89,11 +99,15 @@ impl Npz {
     }
 
     pub fn int(&mut self, name: &str) -> i64 {
+        self.ints(name)[0]
+    }
+
+    pub fn ints(&mut self, name: &str) -> Vec<i64> {
         let a: ArrayD<i64> = self
             .0
             .by_name(name)
             .unwrap_or_else(|e| panic!("{name}: {e}"));
-        a.iter().copied().next().unwrap()
+        a.iter().copied().collect()
     }
 
     pub fn scalar(&mut self, name: &str) -> f32 {
