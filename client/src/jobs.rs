@@ -94,10 +94,12 @@ pub struct JobProgress {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Sampler {
-    /// UniPC, order 2 (the server's default: fewer steps for the same quality).
+    /// UniPC, order 2 (VACE-layout workers' default: fewer steps for the same quality).
     Unipc,
-    /// Euler.
+    /// Euler on diffusers' schedule.
     Euler,
+    /// Euler on DiffSynth's schedule, as C4G's own pipeline runs it (C4G-layout workers' default).
+    DiffsynthEuler,
 }
 
 /// A refinement request, as `docs/api.md` describes its JSON. Every field is optional.
@@ -119,7 +121,8 @@ pub struct RefineRequest {
     /// Last time of the novel views (default: the context span's end).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub end: Option<f64>,
-    /// Context frames to condition on (default: all of the clip's, as many as fit).
+    /// Context frames to condition on (default: all of the clip's, as many as fit; a C4G-layout
+    /// worker takes exactly its keyframe count).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub context_frames: Option<usize>,
     /// A caption of the scene (the prompt).
@@ -137,16 +140,17 @@ pub struct RefineRequest {
     /// A precomputed negative-prompt embedding (same shape).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub negative_embedding: Option<Vec<f32>>,
-    /// Denoising steps (server default 30): the main speed / quality trade.
+    /// Denoising steps (default: the worker's layout's, 30 for VACE's, 50 for C4G's): the main
+    /// speed / quality trade.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub steps: Option<u32>,
-    /// Flow shift (server default 3).
+    /// Flow shift (default 3 for VACE's layout, 5 for C4G's).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub shift: Option<f64>,
     /// Classifier-free guidance (server default 5; 1 skips the unconditional pass).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub guidance: Option<f64>,
-    /// The sampler (server default UniPC).
+    /// The sampler (default UniPC for VACE's layout, DiffSynth's Euler for C4G's).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sampler: Option<Sampler>,
     /// Noise seed (server default 0).

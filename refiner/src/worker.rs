@@ -27,7 +27,8 @@ use tonic::service::Interceptor;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 
-use crate::{ErrorKind, Mask, Pipeline, RefineRequest, RefinerError, Sampler};
+use crate::layout::{self, Keyframe};
+use crate::{ErrorKind, Layout, Mask, Pipeline, RefineRequest, RefinerError, Sampler};
 
 /// How long one `Take` waits for a job before asking again.
 const TAKE_WAIT: Duration = Duration::from_secs(20);
@@ -101,6 +102,7 @@ pub async fn run(
             frames: m.frames as u32,
             width: m.width as u32,
             height: m.height as u32,
+            keyframes: m.keyframe_slots() as u32,
         });
         let take = tokio::select! {
             take = take => take,
@@ -147,7 +149,6 @@ async fn run_job(
     let id = job.job_id.clone();
     tracing::info!(job = %id, attempt = job.attempt, frames = job.frames.len(), "job started");
     let started = Instant::now();
-    let reactive = job.reactive.clone();
     let outcome = refine(
         client.clone(),
         worker,
@@ -170,13 +171,7 @@ async fn run_job(
                 .await
                 .map(|_| "released: it is queued again, the attempt not counted")
         }
-        Ok(frames) => {
-            let reactive: Vec<Vec<u8>> = frames
-                .into_iter()
-                .zip(&reactive)
-                .filter(|(_, reactive)| **reactive)
-                .map(|(png, _)| png)
-                .collect();
+        Ok(reactive) => {
             let messages = std::iter::once(pb::FinishRequest {
                 part: Some(pb::finish_request::Part::Header(pb::FinishHeader {
                     job_id: id.clone(),
@@ -223,7 +218,7 @@ async fn run_job(
 }
 
 /// Prepares the job (frames, prompt embeddings: the text encoder may take seconds) and runs the
-/// pipeline, on a blocking thread, reporting each step.
+/// pipeline, on a blocking thread, reporting each step. Returns the regenerated frames as PNGs.
 async fn refine(
     client: Client,
     worker: &str,
@@ -265,9 +260,18 @@ async fn refine(
             }
         };
         let output = pipeline.refine(&request, &mut progress)?;
-        output
-            .frames
-            .iter()
+        // VACE's layout gives back every frame, the kept ones too; C4G's the rendered ones only.
+        let regenerated: Vec<&Vec<f32>> = match &pipeline.manifest().layout {
+            Layout::Vace => output
+                .frames
+                .iter()
+                .zip(&job.reactive)
+                .filter_map(|(frame, reactive)| reactive.then_some(frame))
+                .collect(),
+            Layout::C4g(_) => output.frames.iter().collect(),
+        };
+        regenerated
+            .into_iter()
             .map(|frame| to_png(frame, width, height))
             .collect()
     })
@@ -275,14 +279,15 @@ async fn refine(
     .map_err(|e| RefinerError::ModelOutput(format!("the refinement thread panicked: {e}")))?
 }
 
-/// The pipeline request for a job: frames fitted to the model's size, mask, prompt, settings.
+/// The pipeline request for a job: frames fitted to the model's size, mask or keyframes (by the
+/// package's layout), prompt, settings. Settings the job leaves out take the layout's defaults.
 fn request(pipeline: &Pipeline, job: &pb::RefineJob) -> Result<RefineRequest, RefinerError> {
     let m = pipeline.package().manifest();
-    if job.frames.len() != m.frames || job.reactive.len() != m.frames {
+    if job.reactive.len() != job.frames.len() {
         return Err(RefinerError::InvalidRequest(format!(
-            "the job has {} frames; this worker's model takes {}",
+            "the job has {} frames and {} reactive flags",
             job.frames.len(),
-            m.frames
+            job.reactive.len()
         )));
     }
     let video = job
@@ -303,15 +308,54 @@ fn request(pipeline: &Pipeline, job: &pb::RefineJob) -> Result<RefineRequest, Re
         embedding(&job.text_embedding, tokens, m.text.tokens, m.text.dim)?,
         &job.caption,
     )?;
-    let negative = prompt(
+    let mut request = match &m.layout {
+        Layout::Vace => {
+            if job.frames.len() != m.frames {
+                return Err(RefinerError::InvalidRequest(format!(
+                    "the job has {} frames; this worker's model takes {}",
+                    job.frames.len(),
+                    m.frames
+                )));
+            }
+            RefineRequest::new(video, Mask::Frames(job.reactive.clone()), text)
+        }
+        Layout::C4g(layout) => {
+            // Context frames become keyframes, placed on the rendered frames' time grid.
+            let times = |reactive: bool| -> Vec<f64> {
+                job.frames
+                    .iter()
+                    .zip(&job.reactive)
+                    .filter(|(_, r)| **r == reactive)
+                    .map(|(f, _)| f.time)
+                    .collect()
+            };
+            let indices = layout::source_indices(&times(false), &times(true));
+            let (mut keyframes, mut rendered) = (Vec::new(), Vec::new());
+            for (frame, reactive) in video.into_iter().zip(&job.reactive) {
+                if *reactive {
+                    rendered.push(frame);
+                } else {
+                    keyframes.push(frame);
+                }
+            }
+            let keyframes = keyframes
+                .into_iter()
+                .zip(indices)
+                .map(|(frame, source_index)| Keyframe {
+                    frame,
+                    source_index,
+                })
+                .collect();
+            RefineRequest::keyframed(layout, keyframes, rendered, text)
+        }
+    };
+    request.negative_embeddings = Some(prompt(
         pipeline,
         embedding(&job.negative_embedding, tokens, m.text.tokens, m.text.dim)?,
         &job.negative_prompt,
-    )?;
+    )?);
     let params: serde_json::Value = serde_json::from_str(&job.params_json)
         .map_err(|e| RefinerError::InvalidRequest(format!("bad job parameters: {e}")))?;
-    let mut request = RefineRequest::new(video, Mask::Frames(job.reactive.clone()), text);
-    request.negative_embeddings = Some(negative);
     if let Some(steps) = params["steps"].as_u64() {
         request.steps = steps as usize;
     }
@@ -327,10 +371,17 @@ fn request(pipeline: &Pipeline, job: &pb::RefineJob) -> Result<RefineRequest, Re
     if let Some(seed) = params["seed"].as_u64() {
         request.seed = seed;
     }
-    request.sampler = match params["sampler"].as_str() {
-        Some("euler") => Sampler::Euler,
-        _ => Sampler::UniPc,
-    };
+    match params["sampler"].as_str() {
+        Some("unipc") => request.sampler = Sampler::UniPc,
+        Some("euler") => request.sampler = Sampler::Euler,
+        Some("diffsynth_euler") => request.sampler = Sampler::DiffSynthEuler,
+        Some(other) => {
+            return Err(RefinerError::InvalidRequest(format!(
+                "unknown sampler {other:?} (this worker runs unipc, euler and diffsynth_euler)"
+            )));
+        }
+        None => {}
+    }
     Ok(request)
 }
 

@@ -1,7 +1,8 @@
 //! Refinement requests: what a client asks for (`POST /v1/clips/{id}/refine`), checked when it
 //! is submitted, and the video a worker gets when it takes the job: the clip's context frames
 //! (keep) followed by novel views rendered along the requested path (regenerate), sized to the
-//! worker's model.
+//! worker's model and laid out as its package's layout wants: VACE's (context and novel frames
+//! filling the model's frames) or C4G's (exactly the model's keyframes, then its novel frames).
 
 use std::sync::Arc;
 
@@ -21,11 +22,13 @@ use crate::service::{PathRequest, Service};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum SamplerName {
-    /// UniPC, order 2 (the default: fewer steps for the same quality).
+    /// UniPC, order 2 (VACE-layout workers' default: fewer steps for the same quality).
     #[default]
     Unipc,
-    /// Euler.
+    /// Euler on diffusers' FlowMatchEuler schedule.
     Euler,
+    /// Euler on DiffSynth's schedule: what C4G's own pipeline runs (C4G-layout workers' default).
+    DiffsynthEuler,
 }
 
 /// A refinement request. Every field is optional.
@@ -43,7 +46,8 @@ pub struct RefineRequest {
     pub start: Option<f64>,
     /// Last time (default: the span's end).
     pub end: Option<f64>,
-    /// Context frames to condition on (default: all of the clip's, as many as fit).
+    /// Context frames to condition on (default: all of the clip's, as many as fit; a C4G-layout
+    /// worker takes exactly its keyframe count).
     pub context_frames: Option<usize>,
     /// A caption of the scene (the prompt), encoded by the worker's text encoder.
     pub caption: Option<String>,
@@ -55,13 +59,14 @@ pub struct RefineRequest {
     pub text_tokens: Option<usize>,
     /// A precomputed negative-prompt embedding (same shape).
     pub negative_embedding: Option<Vec<f32>>,
-    /// Denoising steps (default 30): the main speed / quality trade.
+    /// Denoising steps (default: the worker's layout's, 30 for VACE's and 50 for C4G's): the main
+    /// speed / quality trade.
     pub steps: Option<u32>,
-    /// Flow shift (default 3).
+    /// Flow shift (default 3 for VACE's layout, 5 for C4G's).
     pub shift: Option<f64>,
     /// Classifier-free guidance (default 5; 1 skips the unconditional pass).
     pub guidance: Option<f64>,
-    /// Sampler.
+    /// Sampler (default UniPC for VACE's layout, DiffSynth's Euler for C4G's).
     pub sampler: Option<SamplerName>,
     /// Noise seed (default 0).
     pub seed: Option<u64>,
@@ -184,27 +189,39 @@ impl RefineRequest {
         }
     }
 
-    /// The sampler settings the worker gets.
+    /// The sampler settings the worker gets: what the request gave, `null` for what it left to
+    /// the worker (whose defaults depend on its package's layout).
     pub fn params(&self) -> serde_json::Value {
         json!({
-            "steps": self.steps.unwrap_or(30),
-            "shift": self.shift.unwrap_or(3.0),
-            "guidance": self.guidance.unwrap_or(5.0),
-            "sampler": self.sampler.unwrap_or_default(),
+            "steps": self.steps,
+            "shift": self.shift,
+            "guidance": self.guidance,
+            "sampler": self.sampler,
             "seed": self.seed.unwrap_or(0),
             "control_scale": self.control_scale.unwrap_or(1.0),
         })
     }
 }
 
-/// The job as a worker with a `frames`-frame, `width` × `height` model gets it: context frames
-/// (as uploaded), then novel views rendered at its size.
+/// What a worker's model takes, from its `Take`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct WorkerModel {
+    /// Frames per run: context and novel frames (VACE's layout), novel frames only (C4G's).
+    pub frames: usize,
+    /// C4G's layout: exactly this many context frames (keyframes); 0 for VACE's layout.
+    pub keyframes: usize,
+    /// Frame size.
+    pub width: u32,
+    /// Frame size.
+    pub height: u32,
+}
+
+/// The job as a worker with `model` gets it: context frames (as uploaded), then novel views
+/// rendered at its size.
 pub async fn build_job(
     service: &Arc<Service>,
     record: &JobRecord,
-    frames: u32,
-    width: u32,
-    height: u32,
+    model: WorkerModel,
 ) -> Result<pb::RefineJob, ServiceError> {
     let request: RefineRequest = serde_json::from_value(record.request.clone()).map_err(|e| {
         ServiceError::Internal(format!(
@@ -213,15 +230,28 @@ pub async fn build_job(
         ))
     })?;
     let clip = service.store.get_or_fetch(&record.clip_id).await?;
-    let frames = frames as usize;
     let available = clip.context_times.len();
-    let context = request.context_frames.unwrap_or(available).min(available);
-    if frames < context + 1 {
-        return Err(ServiceError::invalid(format!(
-            "the worker's model takes {frames} frames: too few for {context} context frames and \
-             at least one novel view (ask for fewer context_frames)"
-        )));
-    }
+    let (context, novel) = if model.keyframes > 0 {
+        // C4G's layout: exactly the model's keyframes (a clip with fewer context frames repeats
+        // some), then as many novel views as the model refines.
+        let k = model.keyframes;
+        if request.context_frames.is_some_and(|c| c != k) {
+            return Err(ServiceError::invalid(format!(
+                "the worker's model takes exactly {k} context frames (its keyframes): leave context_frames out or ask for {k}"
+            )));
+        }
+        (k, model.frames)
+    } else {
+        let context = request.context_frames.unwrap_or(available).min(available);
+        if model.frames < context + 1 {
+            return Err(ServiceError::invalid(format!(
+                "the worker's model takes {} frames: too few for {context} context frames and \
+                 at least one novel view (ask for fewer context_frames)",
+                model.frames
+            )));
+        }
+        (context, model.frames - context)
+    };
     // The context frames spread over the clip's, first and last included.
     let chosen: Vec<usize> = (0..context)
         .map(|i| match context {
@@ -229,25 +259,30 @@ pub async fn build_job(
             _ => i * (available - 1) / (context - 1),
         })
         .collect();
-    let mut video = Vec::with_capacity(frames);
+    let mut video = Vec::with_capacity(context + novel);
     for &k in &chosen {
         video.push(pb::VideoFrame {
             time: clip.context_times[k],
             png: service.context_frame_png(&clip.id, k).await?,
         });
     }
-    let mut path = request.path(frames - context);
+    let mut path = request.path(novel);
     if request.cameras.is_some() {
         path.frames = None;
     }
-    path.width = Some(width);
-    path.height = Some(height);
+    path.width = Some(model.width);
+    path.height = Some(model.height);
     let plan = service.plan_path(&clip, &path)?;
-    if plan.len() != frames - context {
+    // C4G's layout pads fewer novel views to the model's count (the worker drops the padding).
+    let fits = match model.keyframes {
+        0 => plan.len() == novel,
+        _ => (1..=novel).contains(&plan.len()),
+    };
+    if !fits {
         return Err(ServiceError::invalid(format!(
-            "{} cameras given; the worker's model refines {} novel views here",
+            "{} cameras given; the worker's model refines {}{novel} novel views here",
             plan.len(),
-            frames - context
+            if model.keyframes > 0 { "1 to " } else { "" },
         )));
     }
     let encoding = service.store.encoding(&clip.id).await?;
@@ -268,7 +303,7 @@ pub async fn build_job(
     Ok(pb::RefineJob {
         job_id: record.id.clone(),
         attempt: record.attempt,
-        reactive: (0..frames).map(|i| i >= context).collect(),
+        reactive: (0..video.len()).map(|i| i >= context).collect(),
         frames: video,
         params_json: request.params().to_string(),
         caption: request.caption.clone().unwrap_or_default(),

@@ -8,7 +8,7 @@ use c4g_proto::v1::jobs_server::{Jobs, JobsServer};
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::jobs::{JobState, Progress};
-use crate::refine::build_job;
+use crate::refine::{WorkerModel, build_job};
 use crate::service::Service;
 use crate::{AppState, ServiceError, ServiceErrorKind};
 
@@ -66,7 +66,13 @@ impl Jobs for Workers {
             let Some(record) = taken else {
                 return Ok(Response::new(pb::TakeResponse { job: None }));
             };
-            match build_job(&service, &record, request.frames, w, h).await {
+            let model = WorkerModel {
+                frames: request.frames as usize,
+                keyframes: request.keyframes as usize,
+                width: w,
+                height: h,
+            };
+            match build_job(&service, &record, model).await {
                 Ok(job) => {
                     tracing::info!(job = %record.id, worker = %request.worker, attempt = record.attempt, "job taken");
                     return Ok(Response::new(pb::TakeResponse { job: Some(job) }));

@@ -2,7 +2,8 @@
 //! Wan-VACE fixture package. A rendered trajectory of a clip is refined; a worker killed mid-job
 //! leaves the job queued for another attempt (never stuck in `running`), a worker sent SIGTERM
 //! hands its job back without spending an attempt, a cancelled job stops at its worker's next
-//! step, and jobs that ended are deleted once their retention has passed.
+//! step, and jobs that ended are deleted once their retention has passed. A worker on the
+//! C4G-layout fixture gets exactly its keyframes and refines only the novel views.
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
 use std::io::{BufRead, BufReader};
@@ -236,6 +237,87 @@ fn the_cli_refines_with_a_progress_report_and_downloads_the_video() {
     );
     assert!(stdout.contains("wrote"), "{stdout}");
     assert_eq!(&std::fs::read(&video).unwrap()[4..8], b"ftyp");
+}
+
+#[test]
+fn a_c4g_layout_worker_takes_exactly_its_keyframes_and_returns_the_novel_views_only() {
+    if !ort_available() {
+        return;
+    }
+    let server = Server::start(&[]);
+    let clip = upload_synthetic(&server);
+    let client = Client::new();
+    let package = "models/fixtures/wan-vace-tiny-c4g";
+    let _worker = RefinerWorker::start_with(&server.url(), "w-c4g", &["--package", package]);
+    let manifest: Value = serde_json::from_slice(
+        &std::fs::read(workspace().join(package).join("refiner.json")).unwrap(),
+    )
+    .unwrap();
+    let novel = manifest["frames"].as_u64().unwrap();
+
+    // From the CLI, with the layout's defaults but for the steps: every novel view comes back.
+    let out = tempfile::tempdir().unwrap();
+    let video = out.path().join("refined.mp4");
+    let output = Command::new(binary("c4g"))
+        .args([
+            "--server",
+            &server.url(),
+            "refine",
+            &clip,
+            "--orbit",
+            "10",
+            "--steps",
+            "2",
+            "-o",
+        ])
+        .arg(&video)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert_eq!(&std::fs::read(&video).unwrap()[4..8], b"ftyp");
+    let jobs: Value = client
+        .get(server.at("/v1/jobs"))
+        .send()
+        .unwrap()
+        .json()
+        .unwrap();
+    let done = &jobs["jobs"][0];
+    assert_eq!(done["state"], "done", "{jobs:#}");
+    assert_eq!(done["result_frames"].as_u64(), Some(novel), "{done:#}");
+    assert_eq!(done["progress"]["steps"], 2, "{done:#}");
+
+    // Fewer cameras than the model's frames: padded for the model, only the asked ones back.
+    let submit = |body: Value| -> String {
+        let answer = client
+            .post(server.at(&format!("/v1/clips/{clip}/refine")))
+            .json(&body)
+            .send()
+            .unwrap();
+        assert_eq!(answer.status(), 202);
+        answer.json::<Value>().unwrap()["id"]
+            .as_str()
+            .unwrap()
+            .to_owned()
+    };
+    let ended = |record: &Value| matches!(record["state"].as_str(), Some("done" | "failed"));
+    let id = submit(json!({"cameras": [{}, {}], "steps": 1}));
+    let record = wait_for(&client, &server, &id, Duration::from_secs(120), ended);
+    assert_eq!(record["state"], "done", "{record:#}");
+    assert_eq!(record["result_frames"], 2, "{record:#}");
+
+    // Another keyframe count than the model's fails the job with a reason.
+    let id = submit(json!({"context_frames": 2, "steps": 1}));
+    let record = wait_for(&client, &server, &id, Duration::from_secs(120), ended);
+    assert_eq!(record["state"], "failed", "{record:#}");
+    assert!(
+        record["error"].as_str().unwrap().contains("exactly 3"),
+        "{record:#}"
+    );
 }
 
 #[test]

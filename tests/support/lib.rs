@@ -562,17 +562,23 @@ pub fn multipart_bytes(frames: &[PathBuf], times: &[f64], boundary: &str) -> Vec
     body
 }
 
-/// A `c4g-refiner` worker on the tiny Wan-VACE fixture, pulling jobs from the server at `url`
-/// (the process is in `.0`); killed when dropped.
+/// A `c4g-refiner` worker on the tiny Wan-VACE fixture (or another package), pulling jobs from
+/// the server at `url` (the process is in `.0`); killed when dropped.
 pub struct RefinerWorker(pub Child);
 
 impl RefinerWorker {
     /// Starts one named `name`, on one intra-op thread, logging at `RUST_LOG` (default warn).
     pub fn start(url: &str, name: &str) -> Self {
+        Self::start_with(url, name, &[])
+    }
+
+    /// Like [`start`](Self::start), with more arguments (`--package DIR`, for one).
+    pub fn start_with(url: &str, name: &str, args: &[&str]) -> Self {
         Self(
             Command::new(binary("c4g-refiner"))
                 .current_dir(workspace())
                 .args(["--server", url, "--name", name, "--intra-op-threads", "1"])
+                .args(args)
                 .env(
                     "RUST_LOG",
                     std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),

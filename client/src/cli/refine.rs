@@ -19,10 +19,12 @@ const RECONNECTS: u32 = 5;
 /// The values of `--sampler`.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 enum SamplerArg {
-    /// UniPC, order 2 (the server's default).
+    /// UniPC, order 2 (VACE-layout workers' default).
     Unipc,
-    /// Euler.
+    /// Euler on diffusers' schedule.
     Euler,
+    /// Euler on DiffSynth's schedule, as C4G's own pipeline runs it (C4G-layout workers' default).
+    DiffsynthEuler,
 }
 
 #[derive(Debug, clap::Args)]
@@ -47,16 +49,17 @@ pub struct Args {
     /// Last time of the novel views, seconds (default: the context span's end).
     #[arg(long, allow_negative_numbers = true)]
     end: Option<f64>,
-    /// Denoising steps (server default 30): the main speed / quality trade.
+    /// Denoising steps (default: the worker's layout's, 30 for VACE's, 50 for C4G's): the main
+    /// speed / quality trade.
     #[arg(long, value_name = "N")]
     steps: Option<u32>,
     /// Classifier-free guidance (server default 5; 1 skips the unconditional pass).
     #[arg(long, value_name = "G")]
     guidance: Option<f64>,
-    /// Flow shift (server default 3).
+    /// Flow shift (default 3 for VACE's layout, 5 for C4G's).
     #[arg(long, value_name = "S")]
     shift: Option<f64>,
-    /// The sampler (server default unipc).
+    /// The sampler (default unipc for VACE's layout, diffsynth-euler for C4G's).
     #[arg(long, value_enum)]
     sampler: Option<SamplerArg>,
     /// Noise seed (server default 0).
@@ -68,7 +71,8 @@ pub struct Args {
     /// What the result should not look like (the negative prompt; default empty).
     #[arg(long, value_name = "TEXT")]
     negative_prompt: Option<String>,
-    /// Context frames to condition on (default: all of the clip's, as many as fit).
+    /// Context frames to condition on (default: all of the clip's, as many as fit; a C4G-layout
+    /// worker takes exactly its keyframe count).
     #[arg(long, value_name = "N")]
     context_frames: Option<usize>,
     /// Where to write the refined video (default: `<job-id>.mp4`).
@@ -92,6 +96,7 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
         sampler: args.sampler.map(|sampler| match sampler {
             SamplerArg::Unipc => Sampler::Unipc,
             SamplerArg::Euler => Sampler::Euler,
+            SamplerArg::DiffsynthEuler => Sampler::DiffsynthEuler,
         }),
         seed: args.seed,
         caption: args.caption,

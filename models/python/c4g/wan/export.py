@@ -7,6 +7,9 @@ optionally umT5's encoder and tokenizer so that workers take captions).
     python -m c4g.wan.export --diffusers /path/to/Wan2.1-VACE-1.3B-diffusers --frames 81 --height 480 --width 832 --out DIR [--fp16] [--device cuda] [--text-encoder]
     # the real architecture with random weights (speed benchmarks):
     python -m c4g.wan.export --random-init --config 1.3b --out DIR [--fp16] [--device cuda]
+    # C4G's layout (c4g_layout.py): K keyframe slots before --frames rendered frames:
+    python -m c4g.wan.export --tiny --layout c4g --out ../fixtures/wan-vace-tiny-c4g
+    python -m c4g.wan.export --diffusers DIR --layout c4g --keyframes 12 --frames 25 ...
 
 Graphs are traced at one fixed video size (frames, height, width, text tokens): see onnx_graphs.py for
 how (TorchScript exporter, parameter names kept, fused attention). Weights over 2 GB go to
@@ -24,7 +27,11 @@ VAE encoder ~4e-7, VAE decoder ~1e-5 max abs (tests assert 1e-4); f16 transforme
 ## refiner.json
 - `format` "c4g-refiner-package", `format_version` 1, `name`.
 - `source`: {"kind": "random-init", "seed": S, "config": "tiny" | "1.3b"} or {"kind": "checkpoint", "path": DIR}.
-- `frames` F, `height` H, `width` W: the fixed video size of the graphs; `fps` 16 (Wan's).
+- `frames` F, `height` H, `width` W: the fixed video size of the graphs (in the c4g layout, the
+  rendered frames: keyframes come on their own); `fps` 16 (Wan's).
+- `layout`: {"kind": "vace"}, or {"kind": "c4g", "keyframes": K, "keyframe_position_offset": 500,
+  "rope_positions": 1024, "sampler": {the public code's defaults}}: see c4g_layout.py. The latent
+  grid is then K + (F - 1) / 4 + 1 frames; the VAE graphs take and give the rendered part only.
 - `latent`: `channels` 16, `frames` F' = (F - 1) / 4 + 1, `height` H / 8, `width` W / 8, `mean` / `std`
   (16 floats each: the VAE's latents_mean / latents_std), `normalise` and `denormalise` (the formulas
   WanVACEPipeline applies: the graphs take and give UN-normalised latents):
@@ -40,8 +47,10 @@ VAE encoder ~4e-7, VAE decoder ~1e-5 max abs (tests assert 1e-4); f16 transforme
   (`scheduler`) that the reference pipeline runs use.
 - `attention` "fused" | "plain"; `precision` "f32" | "f16" (of the transformer's weights).
 - `files`: `transformer`, `vae_encoder`, `vae_decoder` (ONNX file names; `.data` beside them when
-  external); `text_encoder` and `tokenizer` (optional: the umT5 encoder graph and tokenizer.json); `lora` (tiny fixture only): `peft`, `peft_config`, `wan`, `name_map`, `rank`, `alpha`.
-- `graphs`: for each ONNX file, its inputs and outputs as {name: [shape]} (all f32).
+  external); `vae_frame_encoder` (c4g layout: one frame [1, 3, 1, H, W] → [1, 16, 1, h, w]); `text_encoder` and `tokenizer` (optional: the umT5 encoder graph and tokenizer.json); `lora` (tiny fixture only): `peft`, `peft_config`, `wan`, `name_map`, `rank`, `alpha`.
+- `graphs`: for each ONNX file, its inputs and outputs as {name: [shape]} (f32, but for the
+  transformer's `positions`: int64 [F'], each latent frame's temporal RoPE index, VACE's 0..F'-1;
+  every export has it but the tiny VACE fixture's, made before it existed).
 - `weight_names` "diffusers": transformer initializers are named as diffusers' parameters, [out, in].
 - `parameters`: transformer / vae (/ text_encoder) parameter counts; `onnx`: opset and IR version; `diffusers_version`.
 - `diffusers_config`: {"transformer": ..., "vae": ...}, the configs the models were built from;
