@@ -11,6 +11,11 @@
 //! it once per clip and the encoding keeps its result, which every decode of the clip feeds the
 //! decoder (an encoding rebuilt from its parts gets it on its first decode).
 //!
+//! A package whose decoder takes `query_indices` also decodes a [`QuerySubset`] of its queries
+//! alone (`decode_subset`): an approximation, since the kept queries attend to fewer tokens. Its
+//! full decodes leave the indices out, and the graph's default (every query) gives the full
+//! decoder's Gaussians, bit for bit.
+//!
 //! Each graph is a `c4g_runtime::Graph`, its session behind a mutex (`ort` 2.0 runs sessions
 //! through `&mut`): the engine is `Send + Sync` and calls on one graph are serialised (ONNX
 //! Runtime already uses every core inside one run; more throughput means more engines or a GPU).
@@ -29,6 +34,7 @@ use crate::error::ShapeDim::{Fixed, Free};
 use crate::graph::{Contract, GAUSSIAN_CHANNELS, context_projection_width};
 use crate::options::EngineOptions;
 use crate::package::{AttentionKind, DecoderForm, Manifest, Package};
+use crate::query_subset::QuerySubset;
 use crate::time::{NormalizedTimes, TimePolicy};
 use crate::{EngineError, Result, preprocess};
 
@@ -135,6 +141,11 @@ impl Engine {
         self.time_policy
     }
 
+    /// True when the package's decoder can run a [`QuerySubset`] of its queries alone.
+    pub fn has_query_subset(&self) -> bool {
+        self.manifest().decoder_query_subset
+    }
+
     /// True when the package can lift feature maps onto its Gaussians.
     pub fn has_feature_decoder(&self) -> bool {
         self.feature_decoder.is_some()
@@ -193,12 +204,74 @@ impl Engine {
         encoding: &Encoding,
         times: &[NormalizedTimes],
     ) -> Result<Vec<GaussianSet>> {
+        self.decode_queries(encoding, times, None)
+    }
+
+    /// Decodes the Gaussians of the queries `subset` alone at each target time: each set holds
+    /// `subset.len()` Gaussians, in the full set's order. Not the full decode's Gaussians with the
+    /// others removed: the dropped queries' tokens leave the decoder, and the kept ones attend to
+    /// each other and the context without them (an approximation, measured in
+    /// `docs/tradeoffs.md`). A package whose decoder does not take `query_indices` refuses it.
+    pub fn decode_subset(
+        &self,
+        encoding: &Encoding,
+        targets: &[f64],
+        subset: &QuerySubset,
+    ) -> Result<Vec<GaussianSet>> {
+        let times = self.normalize(encoding, targets)?;
+        self.decode_subset_normalized(encoding, &times, subset)
+    }
+
+    /// [`decode`](Self::decode), or [`decode_subset`](Self::decode_subset) when `queries` is
+    /// given.
+    pub fn decode_on(
+        &self,
+        encoding: &Encoding,
+        targets: &[f64],
+        queries: Option<&QuerySubset>,
+    ) -> Result<Vec<GaussianSet>> {
+        match queries {
+            Some(subset) => self.decode_subset(encoding, targets, subset),
+            None => self.decode(encoding, targets),
+        }
+    }
+
+    /// [`decode_subset`](Self::decode_subset) for already-normalised times.
+    pub fn decode_subset_normalized(
+        &self,
+        encoding: &Encoding,
+        times: &[NormalizedTimes],
+        subset: &QuerySubset,
+    ) -> Result<Vec<GaussianSet>> {
+        if !self.has_query_subset() {
+            return Err(EngineError::NoQuerySubset {
+                package: self.manifest().name.clone(),
+            });
+        }
+        let n = self.manifest().gaussian_count;
+        if let Some(&last) = subset.indices().last()
+            && last as usize >= n
+        {
+            return Err(EngineError::InvalidInput(format!(
+                "query index {last} is out of range: the package decodes {n} queries"
+            )));
+        }
+        self.decode_queries(encoding, times, Some(subset))
+    }
+
+    /// The decoder over `times` in batches, on `queries` when given (else on all).
+    fn decode_queries(
+        &self,
+        encoding: &Encoding,
+        times: &[NormalizedTimes],
+        queries: Option<&QuerySubset>,
+    ) -> Result<Vec<GaussianSet>> {
         self.check_encoding(encoding, times)?;
         let projection = self.context_projection(encoding)?;
         let batch = self.decode_batch_size(encoding.frame_count());
         let mut sets = Vec::with_capacity(times.len());
         for chunk in times.chunks(batch) {
-            let inputs = DecoderInputs::new(encoding, projection.as_deref(), chunk);
+            let inputs = DecoderInputs::new(encoding, projection.as_deref(), chunk, queries);
             sets.extend(self.decode_chunk(&inputs, None)?);
         }
         Ok(sets)
@@ -238,7 +311,8 @@ impl Engine {
         let batch = self.decode_batch_size(encoding.frame_count());
         let mut sets = Vec::with_capacity(times.len());
         for chunk in times.chunks(batch) {
-            let inputs = DecoderInputs::new(encoding, projection.as_deref(), chunk);
+            // The feature decoder has no query subset: its Gaussians are all N.
+            let inputs = DecoderInputs::new(encoding, projection.as_deref(), chunk, None);
             sets.extend(self.decode_chunk(&inputs, Some((&maps, width)))?);
         }
         Ok(sets)
@@ -405,7 +479,7 @@ impl Engine {
             Some((maps, width)) => Some((self.run_feature_decoder(inputs, maps, width)?, width)),
             None => None,
         };
-        let n = self.manifest().gaussian_count;
+        let n = inputs.query_count(self.manifest());
         (0..inputs.batch)
             .map(|i| {
                 let invalid = |e: c4g_renderer::RendererError| {
@@ -426,35 +500,27 @@ impl Engine {
             .collect()
     }
 
-    /// `gaussians` [B, N, 14] for one batch.
+    /// `gaussians` [B, N, 14] for one batch ([B, Q, 14] on a query subset).
     fn run_decoder(&self, inputs: &DecoderInputs<'_>) -> Result<Vec<f32>> {
         let (features, context_times, target_times) = inputs.tensors()?;
         let shape = [
             inputs.batch,
-            self.manifest().gaussian_count,
+            inputs.query_count(self.manifest()),
             GAUSSIAN_CHANNELS,
         ];
         let read = |outputs: &RunOutputs<'_, '_>| Ok(outputs.f32("gaussians", &shape)?.to_vec());
-        let gaussians = match inputs.context_projection_tensor(self.manifest())? {
-            Some(projection) => self.decoder.run(
-                ort::inputs![
-                    "features" => features,
-                    "context_projection" => projection,
-                    "context_times" => context_times,
-                    "target_times" => target_times,
-                ],
-                read,
-            ),
-            None => self.decoder.run(
-                ort::inputs![
-                    "features" => features,
-                    "context_times" => context_times,
-                    "target_times" => target_times,
-                ],
-                read,
-            ),
-        };
-        Ok(gaussians?)
+        let mut feeds = ort::inputs![
+            "features" => features,
+            "context_times" => context_times,
+            "target_times" => target_times,
+        ];
+        if let Some(projection) = inputs.context_projection_tensor(self.manifest())? {
+            feeds.push(("context_projection".into(), projection.into()));
+        }
+        if let Some(queries) = inputs.query_indices_tensor()? {
+            feeds.push(("query_indices".into(), queries.into()));
+        }
+        Ok(self.decoder.run(feeds, read)?)
     }
 
     /// `gaussian_features` [B, N, F] for one batch; `maps` is `[T, P, F]` in encoded order.
@@ -488,10 +554,12 @@ impl Engine {
 
 /// What every decoder graph takes for one batch of targets: the encoding's features and each
 /// target's normalised times, flattened to `[B, T]` and `[B]`; and, for the Gaussian decoder of a
-/// precomputed-form package, the context projection.
+/// precomputed-form package, the context projection; for one that takes `query_indices`, the
+/// queries to decode.
 struct DecoderInputs<'a> {
     features: &'a [f32],
     context_projection: Option<&'a [f32]>,
+    queries: Option<&'a QuerySubset>,
     shape: [usize; 3],
     batch: usize,
     context: Vec<f32>,
@@ -503,10 +571,12 @@ impl<'a> DecoderInputs<'a> {
         encoding: &'a Encoding,
         context_projection: Option<&'a [f32]>,
         times: &[NormalizedTimes],
+        queries: Option<&'a QuerySubset>,
     ) -> Self {
         Self {
             features: encoding.features(),
             context_projection,
+            queries,
             shape: encoding.shape(),
             batch: times.len(),
             context: times
@@ -527,6 +597,21 @@ impl<'a> DecoderInputs<'a> {
                 .map_err(prepare())?,
             TensorRef::from_array_view(([self.batch], self.target.as_slice())).map_err(prepare())?,
         ))
+    }
+
+    /// Gaussians per set: the subset's size, else the package's N.
+    fn query_count(&self, m: &Manifest) -> usize {
+        self.queries.map_or(m.gaussian_count, QuerySubset::len)
+    }
+
+    /// A borrowed int64 tensor of the query indices `[Q]`, when the decoder takes them.
+    fn query_indices_tensor(&self) -> Result<Option<TensorRef<'_, i64>>> {
+        let Some(queries) = self.queries else {
+            return Ok(None);
+        };
+        let tensor = TensorRef::from_array_view(([queries.len()], queries.indices()))
+            .map_err(RuntimeError::ort("preparing the query indices"))?;
+        Ok(Some(tensor))
     }
 
     /// A borrowed tensor of the context projection `[T, P, 3C]`, when there is one.

@@ -98,6 +98,14 @@ pub enum EngineError {
         /// The package name.
         package: String,
     },
+    /// A query subset asked of a package whose decoder decodes all its queries only.
+    #[error(
+        "package {package}'s decoder has no query_indices input (model.json: decoder_query_subset); it cannot drop queries: export it again with `python -m c4g.export`"
+    )]
+    NoQuerySubset {
+        /// The package name.
+        package: String,
+    },
     /// The model produced output that breaks the package contract.
     #[error("the model produced invalid output: {0}")]
     ModelOutput(String),
@@ -111,7 +119,7 @@ impl EngineError {
                 ErrorKind::Package
             }
             Self::Runtime(e) => e.kind(),
-            Self::NoFeatureDecoder { .. } => ErrorKind::Unsupported,
+            Self::NoFeatureDecoder { .. } | Self::NoQuerySubset { .. } => ErrorKind::Unsupported,
             Self::EmptyContext
             | Self::NonFiniteTime { .. }
             | Self::TargetOutsideContext { .. }

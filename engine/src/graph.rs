@@ -7,7 +7,7 @@
 use std::path::Path;
 
 use ort::session::Session;
-use ort::value::{Outlet, TensorElementType};
+use ort::value::{Outlet, TensorElementType, ValueType};
 
 use crate::error::{ShapeDim, format_dims};
 use crate::package::{DecoderForm, Manifest};
@@ -16,14 +16,20 @@ use crate::{EngineError, Result};
 /// Floats per Gaussian in the decoder's output.
 pub(crate) const GAUSSIAN_CHANNELS: usize = c4g_renderer::CANONICAL_CHANNELS;
 
-/// One named f32 tensor of a graph and its expected shape.
+/// One named tensor of a graph, its element type and its expected shape.
 pub(crate) struct Port {
     pub(crate) name: &'static str,
+    pub(crate) element: TensorElementType,
     pub(crate) dims: Vec<ShapeDim>,
 }
 
+/// An f32 tensor: every port but the query indices.
 fn port(name: &'static str, dims: Vec<ShapeDim>) -> Port {
-    Port { name, dims }
+    Port {
+        name,
+        element: TensorElementType::Float32,
+        dims,
+    }
 }
 
 /// What one graph of the package must look like.
@@ -31,6 +37,9 @@ pub(crate) struct Contract {
     graph: &'static str,
     precision: String,
     inputs: Vec<Port>,
+    /// Inputs with a default a run may leave out: initializers of the same name, which ONNX
+    /// Runtime lists apart from the inputs (overridable initializers).
+    defaults: Vec<Port>,
     outputs: Vec<Port>,
 }
 
@@ -51,6 +60,7 @@ impl Contract {
                 "frames",
                 vec![Free("T"), Fixed(3), Fixed(h), Fixed(w)],
             )],
+            defaults: vec![],
             outputs: vec![features(m)],
         }
     }
@@ -62,24 +72,39 @@ impl Contract {
             graph: "context_projection",
             precision: m.precision.clone(),
             inputs: vec![features(m)],
+            defaults: vec![],
             outputs: vec![context_projection(m)],
         }
     }
 
     /// `decoder.onnx`: features (and, in the precomputed form, context_projection [T, P, 3C]),
-    /// context_times [B, T], target_times [B] → gaussians [B, N, 14].
+    /// context_times [B, T], target_times [B] → gaussians [B, N, 14]; with a query subset, also
+    /// query_indices int64 [Q] → gaussians [B, Q, 14].
     pub(crate) fn decoder(m: &Manifest) -> Self {
         let mut inputs = decoder_inputs(m);
         if m.decoder_form == DecoderForm::Precomputed {
             inputs.push(context_projection(m));
         }
+        // query_indices defaults to every query: a full decode leaves it out, and runs exactly as a
+        // decoder without it.
+        let (queries, defaults) = if m.decoder_query_subset {
+            let indices = Port {
+                name: "query_indices",
+                element: TensorElementType::Int64,
+                dims: vec![Free("Q")],
+            };
+            (Free("Q"), vec![indices])
+        } else {
+            (Fixed(m.gaussian_count), vec![])
+        };
         Self {
             graph: "decoder",
             precision: m.precision.clone(),
             inputs,
+            defaults,
             outputs: vec![port(
                 "gaussians",
-                vec![Free("B"), Fixed(m.gaussian_count), Fixed(GAUSSIAN_CHANNELS)],
+                vec![Free("B"), queries, Fixed(GAUSSIAN_CHANNELS)],
             )],
         }
     }
@@ -96,6 +121,7 @@ impl Contract {
             graph: "feature_decoder",
             precision: m.precision.clone(),
             inputs,
+            defaults: vec![],
             outputs: vec![port(
                 "gaussian_features",
                 vec![Free("B"), Fixed(m.gaussian_count), Fixed(width)],
@@ -130,8 +156,19 @@ impl Contract {
                         outlets.iter().map(Outlet::name).collect::<Vec<_>>()
                     ))
                 })?;
-                check_outlet(p, outlet).map_err(|reason| invalid(format!("{role} {reason}")))?;
+                check_value(p, outlet.dtype())
+                    .map_err(|reason| invalid(format!("{role} {reason}")))?;
             }
+        }
+        let overridable = session.overridable_initializers();
+        for p in &self.defaults {
+            let found = overridable.iter().find(|o| o.name() == p.name).ok_or_else(|| {
+                invalid(format!(
+                    "no input {:?} with a default (an initializer of that name); model.json                      declares decoder_query_subset",
+                    p.name
+                ))
+            })?;
+            check_value(p, found.dtype()).map_err(|reason| invalid(format!("input {reason}")))?;
         }
         let stamped = session
             .metadata()
@@ -181,13 +218,13 @@ fn decoder_inputs(m: &Manifest) -> Vec<Port> {
     ]
 }
 
-/// Why `outlet` does not fit `port`, if it does not. Dynamic dimensions (-1) fit anything.
-fn check_outlet(port: &Port, outlet: &Outlet) -> std::result::Result<(), String> {
-    let dtype = outlet.dtype();
-    if dtype.tensor_type() != Some(TensorElementType::Float32) {
+/// Why a value of type `dtype` does not fit `port`, if it does not. Dynamic dimensions (-1) fit
+/// anything; a default's fixed size fits a free dimension.
+fn check_value(port: &Port, dtype: &ValueType) -> std::result::Result<(), String> {
+    if dtype.tensor_type() != Some(port.element) {
         return Err(format!(
-            "{:?} must be a float32 tensor, is {dtype}",
-            port.name
+            "{:?} must be a {} tensor, is {dtype}",
+            port.name, port.element
         ));
     }
     let Some(shape) = dtype.tensor_shape() else {

@@ -49,7 +49,7 @@ use c4g_renderer::{FeatureBlock, GaussianSet};
 
 use crate::encoding::Encoding;
 use crate::engine::Engine;
-use crate::{EngineError, Result};
+use crate::{EngineError, QuerySubset, Result};
 
 /// How a decode of many times is computed: exactly at every time, or exactly at keyframes and
 /// interpolated between them.
@@ -479,11 +479,23 @@ impl Engine {
         targets: &[f64],
         keyframes: &Keyframes,
     ) -> Result<(Vec<GaussianSet>, KeyframeStats)> {
+        self.decode_keyframed_on(encoding, targets, keyframes, None)
+    }
+
+    /// [`decode_keyframed`](Self::decode_keyframed) on the queries `queries` alone, when given
+    /// (every exact decode is [`decode_subset`](Self::decode_subset)'s).
+    pub fn decode_keyframed_on(
+        &self,
+        encoding: &Encoding,
+        targets: &[f64],
+        keyframes: &Keyframes,
+        queries: Option<&QuerySubset>,
+    ) -> Result<(Vec<GaussianSet>, KeyframeStats)> {
         keyframes.validate()?;
         let batch = self.decode_batch_size(encoding.frame_count()).max(1);
         let distinct = distinct_times(targets)?;
         if !keyframes.interpolates(targets) {
-            let sets = self.decode(encoding, targets)?;
+            let sets = self.decode_on(encoding, targets, queries)?;
             let stats = KeyframeStats {
                 exact_decodes: targets.len(),
                 decoder_runs: targets.len().div_ceil(batch),
@@ -492,7 +504,7 @@ impl Engine {
             };
             return Ok((sets, stats));
         }
-        let (track, mut stats) = self.keyframe_track(encoding, targets, keyframes)?;
+        let (track, mut stats) = self.keyframe_track_on(encoding, targets, keyframes, queries)?;
         let sets = targets
             .iter()
             .map(|&t| track.at(t))
@@ -513,11 +525,22 @@ impl Engine {
         targets: &[f64],
         keyframes: &Keyframes,
     ) -> Result<(KeyframeTrack, KeyframeStats)> {
+        self.keyframe_track_on(encoding, targets, keyframes, None)
+    }
+
+    /// [`keyframe_track`](Self::keyframe_track) on the queries `queries` alone, when given.
+    pub fn keyframe_track_on(
+        &self,
+        encoding: &Encoding,
+        targets: &[f64],
+        keyframes: &Keyframes,
+        queries: Option<&QuerySubset>,
+    ) -> Result<(KeyframeTrack, KeyframeStats)> {
         let batch = self.decode_batch_size(encoding.frame_count()).max(1);
         let mut runs = 0;
         let (track, mut stats) = plan_keyframes(targets, keyframes, encoding.times(), |times| {
             runs += times.len().div_ceil(batch);
-            self.decode(encoding, times)
+            self.decode_on(encoding, times, queries)
         })?;
         stats.decoder_runs = runs;
         Ok((track, stats))

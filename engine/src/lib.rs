@@ -7,7 +7,9 @@
 //! ([`Engine::decode_features`]). Many times decode cheaper through [`keyframes`]: exact sets at a
 //! few keyframes, interpolated per Gaussian in between ([`Engine::decode_keyframed`]). A package
 //! in the precomputed decoder form ([`package::DecoderForm`]) also projects the features once per
-//! encoding, which every decode of it reuses.
+//! encoding, which every decode of it reuses. A package whose decoder takes query indices also
+//! decodes a [`QuerySubset`] of its queries alone ([`Engine::decode_subset`]), dropping the
+//! others' tokens from the decoder: cheaper, and an approximation.
 //!
 //! | module | holds |
 //! |---|---|
@@ -18,6 +20,7 @@
 //! | `encoding` | context frames in, encodings out |
 //! | `engine` | encode and decode |
 //! | [`keyframes`] | keyframed decoding: where keyframes go, and the interpolation between them |
+//! | `query_subset` | which queries a decode runs: all, or a checked subset |
 //! | `graph` | each ONNX graph's inputs and outputs, checked at load |
 //! | `error` | the crate's error type |
 //!
@@ -33,6 +36,7 @@ pub mod keyframes;
 mod options;
 pub mod package;
 pub mod preprocess;
+mod query_subset;
 pub mod time;
 
 pub use c4g_runtime::{
@@ -45,4 +49,5 @@ pub use error::{EngineError, Result};
 pub use keyframes::{KeyframeStats, KeyframeTrack, Keyframes};
 pub use options::EngineOptions;
 pub use package::{Manifest, Package};
+pub use query_subset::QuerySubset;
 pub use time::{NormalizedTimes, TimePolicy};

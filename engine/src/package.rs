@@ -110,6 +110,10 @@ pub struct Manifest {
     /// Whether the decoder takes the context projection, computed once per clip; absent: plain.
     #[serde(default)]
     pub decoder_form: DecoderForm,
+    /// Whether the decoder takes `query_indices` (int64 `[Q]`) and decodes those queries alone
+    /// (see [`QuerySubset`](crate::QuerySubset)); absent: false, the decoder decodes all N.
+    #[serde(default)]
+    pub decoder_query_subset: bool,
     /// The time policy the weights were trained with (`"frame-step"`, `"stable"`,
     /// `"reference"`); absent: frame-step, right for the official weights (see
     /// [`declared_time_policy`](Self::declared_time_policy)).

@@ -13,7 +13,10 @@ computes only the query rows. In the precomputed decoder form (the default from 
 up, where it is the faster) the package also holds `context_projection.onnx`, the first decoder
 layer's qkv projection of the context features, which the engine runs once per clip; the decoder
 graph takes its result instead of recomputing it for every target (`c4g.precomputed`: the same
-result up to float rounding).
+result up to float rounding). The decoder also takes `query_indices` (int64 [Q]): it decodes those
+queries alone, an approximation the service uses to drop pruned Gaussians from the decoder itself
+(`c4g.query_subset`). It defaults to every query, so a caller that leaves it out gets the full
+decode; `--no-query-subset` writes a decoder without it, as packages made before it.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import onnx
 import torch
 from torch import nn
@@ -35,6 +39,7 @@ from .decoder import to_canonical
 from .init import random_init
 from .model import C4G
 from .precomputed import ContextProjection, PrecomputedDecoder
+from .query_subset import SubsetDecoderGraph, SubsetPrecomputedDecoderGraph
 from .raster_reference import FOOTPRINTS
 from .time_policy import POLICIES
 
@@ -107,9 +112,13 @@ class FeatureDecoderGraph(nn.Module):
         return self.model.decode_features(features, context_times, target_times, context_feature_maps)
 
 
-def _export_graph(module: nn.Module, args: tuple, path: Path, inputs: dict[str, dict[int, str]], output: dict[str, dict[int, str]]) -> None:
+def _export_graph(
+    module: nn.Module, args: tuple, path: Path, inputs: dict[str, dict[int, str]], output: dict[str, dict[int, str]], defaults: dict | None = None
+) -> None:
     """Export one graph, then rewrite it with the project's IR version, weights outside the .onnx file
-    only when they exceed protobuf's 2 GB limit."""
+    only when they exceed protobuf's 2 GB limit. `defaults` (input name → array) gives inputs a
+    value a caller may leave out: an initializer of the same name (ONNX Runtime's overridable
+    initializers)."""
     with tempfile.TemporaryDirectory() as tmp:
         raw = Path(tmp) / path.name
         torch.onnx.export(
@@ -126,6 +135,8 @@ def _export_graph(module: nn.Module, args: tuple, path: Path, inputs: dict[str, 
         proto = onnx.load(str(raw), load_external_data=True)
     proto.ir_version = IR_VERSION
     proto.producer_name = "c4g-export"
+    for name, value in (defaults or {}).items():
+        proto.graph.initializer.append(onnx.numpy_helper.from_array(value, name))
     weight_bytes = sum(t.ByteSize() for t in proto.graph.initializer)
     for stale in path.parent.glob(path.name + ".data"):
         stale.unlink()
@@ -139,26 +150,48 @@ def _export_graph(module: nn.Module, args: tuple, path: Path, inputs: dict[str, 
 DECODER_INPUTS = {"features": {0: "T"}, "context_times": {0: "B", 1: "T"}, "target_times": {0: "B"}}
 
 
-def export_plain_decoder(model: C4G, path: Path) -> None:
-    """decoder.onnx in the plain form: features + times → gaussians."""
+def _example_query_indices(model: C4G) -> torch.Tensor:
+    """Traced with fewer queries than the model has (every other one), so that nothing in the graph
+    can silently stand for N."""
+    return torch.arange(0, model.cfg.queries, 2, dtype=torch.int64)
+
+
+def _all_queries(model: C4G) -> dict:
+    """`query_indices` defaults to every query: a caller that does not feed it (every caller made
+    before the input existed) gets the full decode, with the same outputs."""
+    return {"query_indices": np.arange(model.cfg.queries, dtype=np.int64)}
+
+
+def export_plain_decoder(model: C4G, path: Path, query_subset: bool = False) -> None:
+    """decoder.onnx in the plain form: features + times (+ query_indices) → gaussians."""
     cfg = model.cfg
     features = torch.zeros(2, cfg.tokens_per_frame, cfg.feature_width)
+    args = (features, torch.zeros(2, 2), torch.zeros(2))
     with torch.no_grad():
-        _export_graph(DecoderGraph(model), (features, torch.zeros(2, 2), torch.zeros(2)), path, DECODER_INPUTS, {"gaussians": {0: "B"}})
+        if query_subset:
+            inputs = {**DECODER_INPUTS, "query_indices": {0: "Q"}}
+            graph, output = SubsetDecoderGraph(model), {"gaussians": {0: "B", 1: "Q"}}
+            _export_graph(graph, (*args, _example_query_indices(model)), path, inputs, output, _all_queries(model))
+        else:
+            _export_graph(DecoderGraph(model), args, path, DECODER_INPUTS, {"gaussians": {0: "B"}})
 
 
-def export_precomputed_decoder(model: C4G, decoder: Path, context_projection: Path) -> None:
+def export_precomputed_decoder(model: C4G, decoder: Path, context_projection: Path, query_subset: bool = False) -> None:
     """The precomputed form: context_projection.onnx (features → context_projection) and a decoder
-    that takes it (features + context_projection + times → gaussians)."""
+    that takes it (features + context_projection + times (+ query_indices) → gaussians)."""
     cfg = model.cfg
     features = torch.zeros(2, cfg.tokens_per_frame, cfg.feature_width)
     with torch.no_grad():
         projection = ContextProjectionGraph(model)
         _export_graph(projection, (features,), context_projection, {"features": {0: "T"}}, {"context_projection": {0: "T"}})
         inputs = {"features": {0: "T"}, "context_projection": {0: "T"}, "context_times": {0: "B", 1: "T"}, "target_times": {0: "B"}}
-        _export_graph(
-            PrecomputedDecoderGraph(model), (features, projection(features), torch.zeros(2, 2), torch.zeros(2)), decoder, inputs, {"gaussians": {0: "B"}}
-        )
+        args = (features, projection(features), torch.zeros(2, 2), torch.zeros(2))
+        if query_subset:
+            inputs["query_indices"] = {0: "Q"}
+            graph, args, output = SubsetPrecomputedDecoderGraph(model), (*args, _example_query_indices(model)), {"gaussians": {0: "B", 1: "Q"}}
+            _export_graph(graph, args, decoder, inputs, output, _all_queries(model))
+        else:
+            _export_graph(PrecomputedDecoderGraph(model), args, decoder, inputs, {"gaussians": {0: "B"}})
 
 
 def chosen_decoder_form(form: str, cfg: C4GConfig) -> str:
@@ -200,6 +233,7 @@ def export_package(
     fused_attention: bool = True,
     training: dict | None = None,
     decoder_form: str = "auto",
+    query_subset: bool = True,
 ) -> dict:
     """Write the package for `model` into `out` and return its manifest.
 
@@ -207,7 +241,8 @@ def export_package(
     CPU, fused kernels on CUDA); without it, as plain MatMul / Softmax (any ONNX runtime).
     `decoder_form` "precomputed" adds `context_projection.onnx` and a decoder that takes its output
     (docs/package.md); "plain" writes a decoder that takes the features alone; "auto" picks the
-    faster for the model's size (`chosen_decoder_form`)."""
+    faster for the model's size (`chosen_decoder_form`). `query_subset` gives the decoder its
+    `query_indices` input (`c4g.query_subset`), declared as `decoder_query_subset`."""
     model = model.eval()
     cfg = model.cfg
     decoder_form = chosen_decoder_form(decoder_form, cfg)
@@ -222,9 +257,9 @@ def export_package(
         _export_graph(EncoderGraph(model), (frames,), out / files["encoder"], {"frames": {0: "T"}}, {"features": {0: "T"}})
         if decoder_form == "precomputed":
             files["context_projection"] = "context_projection.onnx"
-            export_precomputed_decoder(model, out / files["decoder"], out / files["context_projection"])
+            export_precomputed_decoder(model, out / files["decoder"], out / files["context_projection"], query_subset)
         else:
-            export_plain_decoder(model, out / files["decoder"])
+            export_plain_decoder(model, out / files["decoder"], query_subset)
             (out / "context_projection.onnx").unlink(missing_ok=True)
         if model.feature_decoder is not None:
             files["feature_decoder"] = "feature_decoder.onnx"
@@ -262,6 +297,7 @@ def export_package(
         "precision": "f32",
         "attention": "fused" if fused_attention else "plain",
         "decoder_form": decoder_form,
+        **({"decoder_query_subset": True} if query_subset else {}),
         "rasterizer": {"footprint": declared_footprint(training)},
         "files": files,
         "parameters": sum(v.numel() for v in model.state_dict().values()),
@@ -331,6 +367,12 @@ def main(argv: list[str] | None = None) -> int:
         f"precomputed from decoder width {PRECOMPUTED_FROM_WIDTH} up, where it is the faster",
     )
     ap.add_argument(
+        "--query-subset",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="give the decoder a query_indices input, to decode some of its queries alone (c4g.query_subset)",
+    )
+    ap.add_argument(
         "--precision",
         choices=["f32", "f16", "int8"],
         default="f32",
@@ -354,6 +396,7 @@ def main(argv: list[str] | None = None) -> int:
     manifest = export_package(
         model, args.out, name, args.version, provenance, args.description,
         fused_attention=args.attention == "fused", training=training, decoder_form=args.decoder_form,
+        query_subset=args.query_subset,
     )  # fmt: skip
     if args.precision != "f32":
         from .precision import convert_package

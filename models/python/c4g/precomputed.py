@@ -87,10 +87,16 @@ class PrecomputedDecoder(nn.Module):
         return (projection + shift) * inverse_sigma.unsqueeze(-1) + self.weight_beta
 
     def first_qkv(
-        self, features: torch.Tensor, context_projection: torch.Tensor, context_emb: torch.Tensor, target_emb: torch.Tensor
+        self,
+        features: torch.Tensor,
+        context_projection: torch.Tensor,
+        context_emb: torch.Tensor,
+        target_emb: torch.Tensor,
+        query_indices: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """The first layer's to_qkv(norm(tokens)) [B, T*P + N, 3 inner], token order as
-        `C4G.time_conditioned_tokens`."""
+        `C4G.time_conditioned_tokens`; with `query_indices` [Q], only those queries' rows
+        (`c4g.query_subset`)."""
         t, p, _ = features.shape
         b = target_emb.shape[0]
         centred = features - features.mean(dim=-1, keepdim=True)  # [T, P, d]
@@ -100,19 +106,33 @@ class PrecomputedDecoder(nn.Module):
         cross = (centred @ context_emb.permute(1, 2, 0)).permute(2, 0, 1) / self.width
         context = self._normalised_projection(context_projection[None], variance[None], cross, context_emb)
         target_emb = target_emb - target_emb.mean(dim=-1, keepdim=True)  # [B, d]
-        query_cross = (target_emb @ self.query_centred_t) / self.width  # [B, N]
-        queries = self._normalised_projection(self.query_projection, self.query_variance, query_cross, target_emb)
+        projection, centred_t, query_variance = self.query_projection, self.query_centred_t, self.query_variance
+        if query_indices is not None:
+            projection, centred_t, query_variance = projection[query_indices], centred_t[:, query_indices], query_variance[query_indices]
+        query_cross = (target_emb @ centred_t) / self.width  # [B, N]
+        queries = self._normalised_projection(projection, query_variance, query_cross, target_emb)
         return torch.cat((context.reshape(b, t * p, -1), queries), dim=1)
 
     def decode_raw(
-        self, features: torch.Tensor, context_projection: torch.Tensor, context_times: torch.Tensor, target_times: torch.Tensor
+        self,
+        features: torch.Tensor,
+        context_projection: torch.Tensor,
+        context_times: torch.Tensor,
+        target_times: torch.Tensor,
+        query_indices: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Raw head output [B, N, 14], as `C4G.decode_raw` (the last layer on the query rows only)."""
+        """Raw head output [B, N, 14], as `C4G.decode_raw` (the last layer on the query rows only);
+        with `query_indices` [Q], [B, Q, 14] of those queries alone (`c4g.query_subset`)."""
         m = self.model
-        n = m.cfg.queries
         context_emb, target_emb = m.time_embeddings(context_times, target_times)
         x = m.tokens_with_embeddings(features, context_emb, target_emb)
-        qkv = self.first_qkv(features, context_projection, context_emb, target_emb)
+        n = m.cfg.queries
+        if query_indices is not None:
+            # The query rows are the last N: keep the context rows and the chosen queries. The
+            # count is traced from the input's shape, so an exported graph takes any subset.
+            n = query_indices.shape[0]
+            x = torch.cat((x[:, : -m.cfg.queries], x[:, -m.cfg.queries :][:, query_indices]), dim=1)
+        qkv = self.first_qkv(features, context_projection, context_emb, target_emb, query_indices)
         x = m.gmae_decoder(x, query_rows=n, first_qkv=qkv)
         return m.gmae_to_gaussians(x[:, -n:])
 

@@ -601,11 +601,52 @@ def document(results: dict, png_name: str) -> str:
     return "\n".join(L)
 
 
+# Sections other benches write into the page (`engine/benches/query_dropping.rs`), between a begin
+# and an end marker: kept verbatim, after the sweep's own text, whenever the page is remade.
+KEPT_BEGIN = "<!-- kept: begin {name} -->"
+KEPT_END = "<!-- kept: end {name} -->"
+KEPT_SECTIONS = ("query-dropping",)
+
+
+def kept_sections(previous: str) -> str:
+    """The marked sections of the page as it was (markers included), in `KEPT_SECTIONS` order."""
+    kept = []
+    for name in KEPT_SECTIONS:
+        begin, end = KEPT_BEGIN.format(name=name), KEPT_END.format(name=name)
+        if begin in previous and end in previous.split(begin, 1)[1]:
+            body = previous.split(begin, 1)[1].split(end, 1)[0]
+            kept.append(f"{begin}{body}{end}\n")
+    return "\n".join(kept)
+
+
+def with_section(page: str, name: str, body: str) -> str:
+    """`page` with the marked section `name` replaced by `body` (appended when it has none)."""
+    begin, end = KEPT_BEGIN.format(name=name), KEPT_END.format(name=name)
+    block = f"{begin}\n{body.strip()}\n{end}\n"
+    if begin in page and end in page.split(begin, 1)[1]:
+        before, rest = page.split(begin, 1)
+        return before + block + rest.split(end, 1)[1].lstrip("\n")
+    return page.rstrip("\n") + "\n\n" + block
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m c4g.tradeoffs_report", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--results", type=Path, default=Path("target/tradeoffs.json"), help="the harness's JSON")
     ap.add_argument("--out", type=Path, default=Path("docs"), help="folder for tradeoffs.md and tradeoffs.png")
+    ap.add_argument(
+        "--section",
+        metavar="NAME=FILE",
+        help=f"only put FILE (Markdown another bench wrote) into the page as its kept section NAME ({', '.join(KEPT_SECTIONS)})",
+    )
     args = ap.parse_args(argv)
+    if args.section:
+        name, _, source = args.section.partition("=")
+        if name not in KEPT_SECTIONS or not source:
+            ap.error(f"--section takes NAME=FILE with NAME one of {', '.join(KEPT_SECTIONS)}")
+        page = args.out / "tradeoffs.md"
+        page.write_text(with_section(page.read_text(), name, Path(source).read_text()))
+        print(f"wrote section {name} of {page}")
+        return 0
     results = json.loads(args.results.read_text())
     rows = results["settings"]
     args.out.mkdir(parents=True, exist_ok=True)
@@ -613,7 +654,9 @@ def main(argv: list[str] | None = None) -> int:
     presets = choose_presets(rows)
     png = args.out / "tradeoffs.png"
     plot(rows, fronts, presets, png)
-    (args.out / "tradeoffs.md").write_text(document(results, png.name))
+    page = args.out / "tradeoffs.md"
+    kept = kept_sections(page.read_text()) if page.exists() else ""
+    page.write_text(document(results, png.name) + ("\n" + kept if kept else ""))
     for name, r in presets.items():
         print(f"{name}: {r['name']} ({r['ms_per_frame']:.2f} ms/frame, {r['sets_per_s']:,.0f} sets/s, loss {loss_db(r, baseline(rows)):+.2f} dB)")
     print(f"wrote {args.out / 'tradeoffs.md'} and {png}")

@@ -56,7 +56,11 @@ def test_converted_graphs_are_stamped_declared_and_keep_f32_io(converted):
         model = onnx.load(str(out / graph))
         assert {p.key: p.value for p in model.metadata_props}[precision.PRECISION_KEY] == name
         for value in list(model.graph.input) + list(model.graph.output):
-            assert value.type.tensor_type.elem_type == onnx.TensorProto.FLOAT, value.name
+            # query_indices (c4g.query_subset) is the one integer input, and keeps its default.
+            wanted = onnx.TensorProto.INT64 if value.name == "query_indices" else onnx.TensorProto.FLOAT
+            assert value.type.tensor_type.elem_type == wanted, value.name
+        if manifest.get("decoder_query_subset") and graph == manifest["files"]["decoder"]:
+            assert "query_indices" in {i.name for i in model.graph.initializer}
         assert (out / graph).stat().st_mode & 0o044 == 0o044, "readable by other users"
 
 

@@ -138,6 +138,19 @@ def test_the_report_writes_the_document_and_plot(tmp_path):
     assert (tmp_path / "docs/tradeoffs.png").stat().st_size > 10_000
     assert text == document(results, "tradeoffs.png")
 
+    # Another bench's section goes in between its markers, and survives the page being remade.
+    section = tmp_path / "dropping.md"
+    section.write_text("## Dropping queries\n\n| a | b |\n")
+    assert main(["--section", f"query-dropping={section}", "--out", str(tmp_path / "docs")]) == 0
+    assert main(["--results", str(path), "--out", str(tmp_path / "docs")]) == 0
+    remade = (tmp_path / "docs/tradeoffs.md").read_text()
+    assert remade.startswith(document(results, "tradeoffs.png"))
+    assert "<!-- kept: begin query-dropping -->\n## Dropping queries\n\n| a | b |\n<!-- kept: end query-dropping -->" in remade
+    section.write_text("## Dropping queries, again\n")
+    assert main(["--section", f"query-dropping={section}", "--out", str(tmp_path / "docs")]) == 0
+    again = (tmp_path / "docs/tradeoffs.md").read_text()
+    assert again.count("kept: begin query-dropping") == 1 and "again" in again and "| a | b |" not in again
+
 
 def test_frames_to_amortise_the_pruning_analysis():
     from c4g.tradeoffs_report import frames_to_amortise
