@@ -193,3 +193,13 @@ def test_regenerated_fixture_matches_the_committed_one(tmp_path):
         new, old = np.load(tmp_path / "reference" / npz.name), np.load(npz)
         for key in old.files:
             np.testing.assert_allclose(new[key], old[key], atol=1e-5, rtol=0, err_msg=f"{npz.name}/{key}")
+
+
+def test_layout_bench_counts_latent_frames_of_the_same_frames():
+    from c4g.wan import bench_layouts
+
+    assert [bench_layouts.pad_to_chunk(n) for n in (1, 2, 5, 23, 35)] == [1, 5, 5, 25, 37]
+    # C4G's training window: 12 keyframes and 23 rendered frames.
+    got = bench_layouts.layouts(12, 23)
+    assert got["vace"] == {"video_frames": 37, "latent_frames": 10, "keyframes": 0}
+    assert got["c4g"] == {"video_frames": 25, "latent_frames": 19, "keyframes": 12}

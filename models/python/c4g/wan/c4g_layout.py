@@ -163,13 +163,14 @@ def control_input(vae, keyframes: np.ndarray, rendered_padded: np.ndarray) -> to
 @torch.no_grad()
 def velocity(transformer, latents, timestep: float, text, control, position_ids, conditioning_scale: float = 1.0) -> torch.Tensor:
     n_vace = len(transformer.config.vace_layers)
-    with positioned(transformer, position_ids):
+    device = latents.device
+    with positioned(transformer, position_ids.to(device)):
         return transformer(
             hidden_states=latents,
-            timestep=torch.tensor([timestep], dtype=torch.float32),
+            timestep=torch.tensor([timestep], dtype=torch.float32, device=device),
             encoder_hidden_states=text,
             control_hidden_states=control,
-            control_hidden_states_scale=torch.full((n_vace,), conditioning_scale),
+            control_hidden_states_scale=torch.full((n_vace,), conditioning_scale, device=device),
             return_dict=False,
         )[0]
 
