@@ -203,3 +203,33 @@ def test_layout_bench_counts_latent_frames_of_the_same_frames():
     got = bench_layouts.layouts(12, 23)
     assert got["vace"] == {"video_frames": 37, "latent_frames": 10, "keyframes": 0}
     assert got["c4g"] == {"video_frames": 25, "latent_frames": 19, "keyframes": 12}
+
+
+def test_a_checkpoint_exports_in_the_c4g_layout(tmp_path, models):
+    """The real-weights path (--diffusers --layout c4g) at another size: keyframe slots, the one-frame
+    encoder, the public code's sampler defaults, and positions that reach the graph."""
+    from c4g.wan import reference
+
+    transformer, vae = models
+    ckpt, out = tmp_path / "checkout", tmp_path / "package"
+    transformer.save_pretrained(ckpt / "transformer")
+    vae.save_pretrained(ckpt / "vae")
+    reference.unipc(3.0).save_pretrained(ckpt / "scheduler")
+    args = ["--diffusers", str(ckpt), "--layout", "c4g", "--keyframes", "2", "--frames", "5", "--height", "16", "--width", "32", "--text-tokens", "8"]
+    assert export.main([*args, "--out", str(out)]) == 0
+    meta = json.loads((out / "refiner.json").read_text())
+    assert meta["layout"]["kind"] == "c4g" and meta["layout"]["keyframes"] == 2
+    assert (meta["latent"]["frames"], meta["sampler"]["steps"], meta["sampler"]["shift"]) == (4, 50, 5.0)
+    frame = session(out / "vae_frame_encoder.onnx").run(None, {"video": np.zeros((1, 3, 1, 16, 32), np.float32)})[0]
+    assert frame.shape == (1, 16, 1, 2, 4)
+    gen = torch.Generator().manual_seed(1)
+    feeds = {
+        "latents": torch.randn(1, 16, 4, 2, 4, generator=gen),
+        "timestep": torch.tensor([500.0]),
+        "text_embeddings": torch.randn(1, 8, 32, generator=gen),
+        "control": torch.randn(1, 96, 4, 2, 4, generator=gen),
+        "positions": c4g_layout.positions([0, 2], 2),
+    }
+    expected = c4g_layout.velocity(transformer, feeds["latents"], 500.0, feeds["text_embeddings"], feeds["control"], feeds["positions"]).numpy()
+    got = session(out / "transformer.onnx").run(None, {**{k: v.numpy() for k, v in feeds.items()}, "control_scale": np.ones(2, np.float32)})[0]
+    np.testing.assert_allclose(got, expected, atol=ONNX_ATOL, rtol=0)
