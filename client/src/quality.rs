@@ -43,6 +43,10 @@ pub struct Prune {
     /// Largest opacity of a dropped Gaussian at any analysed time (server default 1/255).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub opacity: Option<f32>,
+    /// Also drop the pruned Gaussians' query tokens from the decoder itself (server default
+    /// false): cheaper decodes, but the kept Gaussians change (queries attend to each other).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub drop_queries: Option<bool>,
 }
 
 impl Prune {
@@ -51,6 +55,7 @@ impl Prune {
         proto::Prune {
             contribution_px: self.contribution_px,
             opacity: self.opacity,
+            drop_queries: self.drop_queries,
         }
     }
 }
@@ -112,12 +117,13 @@ mod tests {
             keyframes: Some(Keyframes::Count { count: 4 }),
             prune: Some(Prune {
                 contribution_px: Some(1.0),
+                drop_queries: Some(true),
                 opacity: None,
             }),
         };
         assert_eq!(
             serde_json::to_value(approximation).unwrap(),
-            json!({"quality": "fast", "keyframes": {"count": 4}, "prune": {"contribution_px": 1.0}})
+            json!({"quality": "fast", "keyframes": {"count": 4}, "prune": {"contribution_px": 1.0, "drop_queries": true}})
         );
         assert_eq!(approximation.proto_quality(), proto::Quality::Fast as i32);
     }

@@ -264,6 +264,7 @@ fn main() {
                     prune: Some(pb::Prune {
                         contribution_px: Some(0.5),
                         opacity: None,
+                        drop_queries: None,
                     }),
                     ..Default::default()
                 }

@@ -187,6 +187,7 @@ fn quality_spec(
         prune: prune.map(|p| PruneSpec {
             contribution_px: p.contribution_px,
             opacity: p.opacity,
+            drop_queries: p.drop_queries,
         }),
     })
 }

@@ -1,6 +1,8 @@
 //! How much accuracy a request trades for speed, as clients state it: a named preset
 //! (`"quality": "fast"`), and the knobs it stands for, `keyframes` and `prune`, which a request may
 //! also give itself (an explicit knob overrides the preset's). Resolved into an [`Approximation`].
+//! `prune`'s `drop_queries` goes further than any preset: the pruned Gaussians' query tokens leave
+//! the decoder itself, which is cheaper and changes the kept Gaussians (`docs/tradeoffs.md`).
 //!
 //! The presets are points on the Pareto front that `cargo bench -p c4g-engine --bench tradeoffs`
 //! measures (`docs/tradeoffs.md` has the table, the plot and the rule that chose them); the
@@ -64,6 +66,7 @@ impl Preset {
             Preset::Fast => Some(PruneSpec {
                 contribution_px: Some(FAST_CONTRIBUTION_PX),
                 opacity: None,
+                drop_queries: None,
             }),
         }
     }
@@ -96,6 +99,11 @@ pub struct PruneSpec {
     /// Drop a Gaussian whose opacity stays under this at every analysed time (default 1/255,
     /// below which the rasterizer skips it anyway). 0 keeps every Gaussian however faint.
     pub opacity: Option<f32>,
+    /// Also drop the pruned Gaussians' query tokens from the decoder itself (default false):
+    /// every decode runs on the kept queries alone, which is cheaper, but the kept Gaussians
+    /// change, since queries attend to each other (measured in `docs/tradeoffs.md`). Needs a
+    /// package whose decoder takes query indices (`decoder_query_subset`).
+    pub drop_queries: Option<bool>,
 }
 
 impl PruneSpec {
@@ -140,6 +148,8 @@ pub struct Approximation {
     pub keyframes: Keyframes,
     /// Which Gaussians are dropped (`None`: none).
     pub prune: Option<PruneOptions>,
+    /// Whether the dropped Gaussians' queries leave the decoder too (only with `prune`).
+    pub drop_queries: bool,
 }
 
 impl Approximation {
@@ -147,6 +157,7 @@ impl Approximation {
     pub const EXACT: Approximation = Approximation {
         keyframes: Keyframes::Exact,
         prune: None,
+        drop_queries: false,
     };
 
     /// Whether this is what the model computes (so it can be decoded in a batch with others'
@@ -168,12 +179,14 @@ pub fn resolve(
     let preset = spec.preset.unwrap_or_default();
     let keyframes = spec.keyframes.or_else(|| preset.keyframes(context_spacing));
     let keyframes = keyframes::resolve(keyframes.as_ref(), times, max_times)?;
-    let prune = spec
-        .prune
-        .or_else(|| preset.prune())
-        .map(|p| p.options())
-        .transpose()?;
-    Ok(Approximation { keyframes, prune })
+    let prune_spec = spec.prune.or_else(|| preset.prune());
+    let prune = prune_spec.map(|p| p.options()).transpose()?;
+    let drop_queries = prune_spec.and_then(|p| p.drop_queries).unwrap_or(false);
+    Ok(Approximation {
+        keyframes,
+        prune,
+        drop_queries,
+    })
 }
 
 #[cfg(test)]
@@ -244,6 +257,7 @@ mod tests {
             prune: Some(PruneSpec {
                 contribution_px: Some(0.0),
                 opacity: Some(0.0),
+                drop_queries: None,
             }),
         };
         let approx = resolve(&spec, &TIMES, 64, SPACING).unwrap();
@@ -253,12 +267,36 @@ mod tests {
     }
 
     #[test]
+    fn only_a_requests_own_prune_drops_queries() {
+        let with = |preset, drop_queries: Option<bool>| QualitySpec {
+            preset,
+            prune: drop_queries.map(|d| PruneSpec {
+                drop_queries: Some(d),
+                ..PruneSpec::default()
+            }),
+            ..QualitySpec::default()
+        };
+        for (spec, drops) in [
+            (with(None, Some(true)), true),
+            (with(None, Some(false)), false),
+            (with(Some(Preset::Fast), None), false),
+            (with(Some(Preset::Fast), Some(true)), true),
+        ] {
+            let approx = resolve(&spec, &TIMES, 64, SPACING).unwrap();
+            assert_eq!(approx.drop_queries, drops, "{spec:?}");
+            assert!(approx.prune.is_some() || !approx.drop_queries);
+            assert!(!approx.is_exact() || !drops);
+        }
+    }
+
+    #[test]
     fn bad_floors_are_refused_with_their_name() {
         for (spec, name) in [
             (
                 PruneSpec {
                     contribution_px: Some(-1.0),
                     opacity: None,
+                    drop_queries: None,
                 },
                 "contribution_px",
             ),
@@ -266,6 +304,7 @@ mod tests {
                 PruneSpec {
                     contribution_px: Some(f32::NAN),
                     opacity: None,
+                    drop_queries: None,
                 },
                 "contribution_px",
             ),
@@ -273,6 +312,7 @@ mod tests {
                 PruneSpec {
                     contribution_px: None,
                     opacity: Some(1.5),
+                    drop_queries: None,
                 },
                 "opacity",
             ),

@@ -11,7 +11,9 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use c4g_engine::{ContextFrame, Encoding, Engine, KeyframeTrack, Keyframes};
+use c4g_engine::{
+    ContextFrame, Encoding, Engine, EngineError, KeyframeTrack, Keyframes, QuerySubset,
+};
 use c4g_renderer::{Camera, GaussianSet, Image, Trajectory};
 use sha2::{Digest, Sha256};
 use tokio::sync::Semaphore;
@@ -274,7 +276,15 @@ impl Service {
         times: &[f64],
     ) -> Result<Approximation, ServiceError> {
         let spacing = quality::context_spacing(&record.context_times);
-        quality::resolve(spec, times, self.limits.max_times, spacing)
+        let approximation = quality::resolve(spec, times, self.limits.max_times, spacing)?;
+        // Refused before any work is spent: the package's decoder cannot drop queries.
+        if approximation.drop_queries && !self.engine.has_query_subset() {
+            return Err(EngineError::NoQuerySubset {
+                package: self.engine.manifest().name.clone(),
+            }
+            .into());
+        }
+        Ok(approximation)
     }
 
     /// The Gaussians of clip `id` at each time: decoded exactly, or approximated as `quality`
@@ -294,9 +304,14 @@ impl Service {
         }
         let id = id.to_owned();
         self.work(move |service| {
-            let sets = service.decode_keyframed_now(&encoding, &times, &approximation.keyframes)?;
-            let keep = service.keep_now(&id, &encoding, approximation.prune.as_ref())?;
-            prune(keep.as_deref(), sets)
+            let kept = service.kept_now(&id, &encoding, &approximation)?;
+            let sets = service.decode_keyframed_now(
+                &encoding,
+                &times,
+                &approximation.keyframes,
+                kept.queries.as_ref(),
+            )?;
+            kept.select(sets)
         })
         .await
     }
@@ -307,18 +322,22 @@ impl Service {
         encoding: &Encoding,
         times: &[f64],
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
-        self.decode_keyframed_now(encoding, times, &Keyframes::Exact)
+        self.decode_keyframed_now(encoding, times, &Keyframes::Exact, None)
     }
 
-    /// Decodes on the calling (blocking) thread, exactly or through `keyframes`.
+    /// Decodes on the calling (blocking) thread, exactly or through `keyframes`, on the queries
+    /// `queries` alone when given.
     pub fn decode_keyframed_now(
         &self,
         encoding: &Encoding,
         times: &[f64],
         keyframes: &Keyframes,
+        queries: Option<&QuerySubset>,
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
         let started = Instant::now();
-        let (sets, stats) = self.engine.decode_keyframed(encoding, times, keyframes)?;
+        let (sets, stats) = self
+            .engine
+            .decode_keyframed_on(encoding, times, keyframes, queries)?;
         metrics::histogram!("c4g_decode_duration_seconds").record(started.elapsed().as_secs_f64());
         count_sets(stats.exact_decodes, stats.interpolated);
         Ok(times.iter().copied().zip(sets).collect())
@@ -345,6 +364,23 @@ impl Service {
             .transpose()
     }
 
+    /// What a request approximated by `approximation` keeps of clip `id`: which Gaussians, and,
+    /// when it drops queries, the queries its decodes run (measuring the clip on the calling
+    /// thread the first time).
+    pub fn kept_now(
+        &self,
+        id: &str,
+        encoding: &Encoding,
+        approximation: &Approximation,
+    ) -> Result<Kept, ServiceError> {
+        let keep = self.keep_now(id, encoding, approximation.prune.as_ref())?;
+        let queries = match &keep {
+            Some(keep) if approximation.drop_queries => Some(QuerySubset::from_mask(keep)?),
+            _ => None,
+        };
+        Ok(Kept { keep, queries })
+    }
+
     /// Decides, on the calling thread, where the sets of a multi-time request over `times`
     /// come from (keyframes decoded now, or the decoder set by set) and which Gaussians they
     /// keep, so that [`sets_now`](Self::sets_now) can serve them piece by piece.
@@ -355,13 +391,14 @@ impl Service {
         times: &[f64],
         approximation: &Approximation,
     ) -> Result<SetPlan, ServiceError> {
+        let kept = self.kept_now(id, encoding, approximation)?;
         let track = if approximation.keyframes.interpolates(times) {
-            Some(self.keyframe_track_now(encoding, times, &approximation.keyframes)?)
+            let keyframes = &approximation.keyframes;
+            Some(self.keyframe_track_now(encoding, times, keyframes, kept.queries.as_ref())?)
         } else {
             None
         };
-        let keep = self.keep_now(id, encoding, approximation.prune.as_ref())?;
-        Ok(SetPlan { track, keep })
+        Ok(SetPlan { track, kept })
     }
 
     /// The sets at `times` as `plan` says (on the calling thread).
@@ -373,21 +410,30 @@ impl Service {
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
         let sets = match &plan.track {
             Some(track) => self.interpolate_now(track, times)?,
-            None => self.decode_now(encoding, times)?,
+            None => self.decode_keyframed_now(
+                encoding,
+                times,
+                &Keyframes::Exact,
+                plan.kept.queries.as_ref(),
+            )?,
         };
-        prune(plan.keep.as_deref(), sets)
+        plan.kept.select(sets)
     }
 
-    /// Decodes the keyframes `keyframes` chooses for `times` (on the calling thread), for
-    /// [`interpolate_now`](Self::interpolate_now) to serve the sets from piece by piece.
+    /// Decodes the keyframes `keyframes` chooses for `times` (on the calling thread; on the
+    /// queries `queries` alone when given), for [`interpolate_now`](Self::interpolate_now) to
+    /// serve the sets from piece by piece.
     pub fn keyframe_track_now(
         &self,
         encoding: &Encoding,
         times: &[f64],
         keyframes: &Keyframes,
+        queries: Option<&QuerySubset>,
     ) -> Result<KeyframeTrack, ServiceError> {
         let started = Instant::now();
-        let (track, stats) = self.engine.keyframe_track(encoding, times, keyframes)?;
+        let (track, stats) = self
+            .engine
+            .keyframe_track_on(encoding, times, keyframes, queries)?;
         metrics::histogram!("c4g_decode_duration_seconds").record(started.elapsed().as_secs_f64());
         count_sets(stats.exact_decodes, 0);
         Ok(track)
@@ -548,9 +594,10 @@ impl Service {
         approximation: &Approximation,
     ) -> Result<Vec<Image>, ServiceError> {
         let times: Vec<f64> = path.iter().map(|(t, _)| *t).collect();
-        let sets = self.decode_keyframed_now(encoding, &times, &approximation.keyframes)?;
-        let keep = self.keep_now(id, encoding, approximation.prune.as_ref())?;
-        prune(keep.as_deref(), sets)?
+        let kept = self.kept_now(id, encoding, approximation)?;
+        let keyframes = &approximation.keyframes;
+        let sets = self.decode_keyframed_now(encoding, &times, keyframes, kept.queries.as_ref())?;
+        kept.select(sets)?
             .iter()
             .zip(path)
             .map(|((_, set), (_, camera))| {
@@ -590,13 +637,35 @@ impl Service {
     }
 }
 
+/// What a request keeps of a clip's Gaussians ([`Service::kept_now`]).
+pub struct Kept {
+    /// The Gaussians kept (`None`: all).
+    keep: Option<Vec<bool>>,
+    /// The queries decodes run when the request drops queries (`None`: all of them, the
+    /// Gaussians outside `keep` then removed from each decoded set).
+    queries: Option<QuerySubset>,
+}
+
+impl Kept {
+    /// The kept Gaussians of `sets`: sets decoded on the kept queries hold nothing else.
+    fn select(
+        &self,
+        sets: Vec<(f64, GaussianSet)>,
+    ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
+        if self.queries.is_some() {
+            return Ok(sets);
+        }
+        prune(self.keep.as_deref(), sets)
+    }
+}
+
 /// Where the sets of a multi-time request come from, and which Gaussians they keep: decided once
 /// ([`Service::plan_sets_now`]), then served piece by piece ([`Service::sets_now`]).
 pub struct SetPlan {
     /// The keyframes to interpolate from (`None`: every set decoded exactly).
     track: Option<KeyframeTrack>,
-    /// The Gaussians kept (`None`: all).
-    keep: Option<Vec<bool>>,
+    /// The Gaussians kept, and the queries decoded.
+    kept: Kept,
 }
 
 impl SetPlan {
@@ -607,7 +676,13 @@ impl SetPlan {
         options: &c4g_renderer::formats::c4gv::EncodeOptions,
     ) -> Option<Vec<bool>> {
         let track = self.track.as_ref()?;
-        let sets: Vec<GaussianSet> = match &self.keep {
+        // Keyframes decoded on the kept queries hold the kept Gaussians only.
+        let keep = self
+            .kept
+            .keep
+            .as_ref()
+            .filter(|_| self.kept.queries.is_none());
+        let sets: Vec<GaussianSet> = match keep {
             Some(keep) => track
                 .sets()
                 .iter()

@@ -157,3 +157,162 @@ fn presets_prune_the_same_gaussians_everywhere_and_bad_options_are_400() {
     expect_invalid(bad(json!({"t": 0.1, "quality": "ultra"})), "fast");
     expect_invalid(bad(json!({"t": 0.1, "prune": {"floor": 1}})), "floor");
 }
+
+/// The positions of each frame's Gaussians in a JSON decode.
+fn positions(decoded: &Value) -> Vec<Vec<[f64; 3]>> {
+    decoded["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|frame| {
+            frame["means"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|m| {
+                    let v: Vec<f64> = serde_json::from_value(m.clone()).unwrap();
+                    [v[0], v[1], v[2]]
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// `drop_queries` (pruning's option to drop the pruned Gaussians' queries from the decoder
+/// itself): the same Gaussians as pruning alone, in REST and gRPC decodes, moved a little (queries
+/// attend to each other: on c4g-tiny's test clips up to 0.14 scene units and renders 36–39 dB
+/// from exact, `docs/tradeoffs.md`; the bounds here, 0.5 units and 25 dB, catch a decoder that
+/// decodes other queries than the kept ones, not the approximation's exact size); a bad value is
+/// a 400; a package whose decoder cannot drop queries refuses with 422 `unsupported`.
+#[test]
+fn drop_queries_decodes_the_kept_queries_alone_and_a_package_that_cannot_is_422() {
+    if !ort_available() {
+        return;
+    }
+    let (frames, times) = synthetic_clip();
+    let server = Server::start(&[]);
+    let client = Client::new();
+    let upload = |server: &Server| {
+        let clip = json_of(
+            client
+                .post(server.at("/v1/clips"))
+                .multipart(frames_form(&frames, &times).text("max_frames", "4"))
+                .send()
+                .unwrap(),
+        );
+        clip["id"].as_str().unwrap().to_owned()
+    };
+    let id = upload(&server);
+    let url = server.at(&format!("/v1/clips/{id}/gaussians"));
+    let targets = [0.0, 0.15, 0.3, 0.45, 0.6];
+    let decode = |body: Value| json_of(client.post(&url).json(&body).send().unwrap());
+    let pruned = decode(json!({"times": targets, "prune": {}}));
+    let dropped = decode(json!({"times": targets, "prune": {"drop_queries": true}}));
+    assert_eq!(counts(&pruned), counts(&dropped));
+    let (mut largest, mut differs) = (0.0f64, false);
+    for (p, d) in positions(&pruned).iter().zip(&positions(&dropped)) {
+        for (a, b) in p.iter().zip(d) {
+            for c in 0..3 {
+                largest = largest.max((a[c] - b[c]).abs());
+                differs |= a[c] != b[c];
+            }
+        }
+    }
+    assert!(
+        differs,
+        "dropping queries changed nothing: were they dropped?"
+    );
+    assert!(largest < 0.5, "kept Gaussians moved {largest}");
+    // With keyframes too (every exact decode runs on the kept queries).
+    let keyframed = decode(
+        json!({"times": targets, "keyframes": {"count": 2}, "prune": {"drop_queries": true}}),
+    );
+    assert_eq!(counts(&keyframed), counts(&pruned));
+
+    let render = |body: Value| {
+        let response = client
+            .post(server.at(&format!("/v1/clips/{id}/render")))
+            .json(&body)
+            .send()
+            .unwrap();
+        assert!(response.status().is_success(), "{}", response.status());
+        png_rgb(&response.bytes().unwrap())
+    };
+    let exact = render(json!({"t": 0.3}));
+    let approx = render(json!({"t": 0.3, "prune": {"drop_queries": true}}));
+    let psnr = c4g_renderer::metrics::psnr(&exact, &approx, 64, 64, None).unwrap();
+    eprintln!(
+        "drop_queries keeps {} of {GAUSSIANS}; positions move up to {largest:.3}; render {psnr:.1} dB from exact",
+        counts(&dropped)[0]
+    );
+    assert!(psnr >= 25.0, "{psnr} dB");
+
+    // gRPC: the same sets as the REST decode.
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    runtime.block_on(async {
+        let mut grpc = C4gClient::connect(server.url()).await.unwrap();
+        let decoded = grpc
+            .decode(pb::DecodeRequest {
+                clip_id: id.clone(),
+                times: vec![0.3],
+                prune: Some(pb::Prune {
+                    drop_queries: Some(true),
+                    ..Default::default()
+                }),
+                ..Default::default()
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        let set = decoded.frames[0].gaussians.as_ref().unwrap();
+        assert_eq!(set.count as usize, counts(&dropped)[2]);
+    });
+
+    expect_invalid(
+        client
+            .post(&url)
+            .json(&json!({"t": 0.1, "prune": {"drop_queries": "yes"}}))
+            .send()
+            .unwrap(),
+        "drop_queries",
+    );
+
+    // c4g-tiny without `decoder_query_subset` in its manifest: a package whose decoder cannot.
+    let package = tempfile::tempdir().unwrap();
+    let tiny = c4g_e2e::workspace().join("models/c4g-tiny");
+    for file in ["encoder.onnx", "decoder.onnx"] {
+        std::fs::copy(tiny.join(file), package.path().join(file)).unwrap();
+    }
+    let mut manifest: Value =
+        serde_json::from_slice(&std::fs::read(tiny.join("model.json")).unwrap()).unwrap();
+    manifest
+        .as_object_mut()
+        .unwrap()
+        .remove("decoder_query_subset");
+    std::fs::write(
+        package.path().join("model.json"),
+        serde_json::to_vec(&manifest).unwrap(),
+    )
+    .unwrap();
+    let older = Server::start(&["--model", package.path().to_str().unwrap()]);
+    let id = upload(&older);
+    let refused = client
+        .post(older.at(&format!("/v1/clips/{id}/gaussians")))
+        .json(&json!({"t": 0.1, "prune": {"drop_queries": true}}))
+        .send()
+        .unwrap();
+    assert_eq!(refused.status(), 422);
+    let body: Value = refused.json().unwrap();
+    assert_eq!(body["kind"], "unsupported", "{body}");
+    assert!(
+        body["error"].as_str().unwrap().contains("query_indices"),
+        "{body}"
+    );
+    // Pruning alone still works there.
+    let pruned = client
+        .post(older.at(&format!("/v1/clips/{id}/gaussians")))
+        .json(&json!({"t": 0.1, "prune": {}}))
+        .send()
+        .unwrap();
+    assert!(pruned.status().is_success(), "{}", pruned.status());
+}

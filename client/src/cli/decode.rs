@@ -46,6 +46,10 @@ pub(super) struct ApproximationArgs {
     /// server analyses (0.5 is its default floor; 0 keeps every visible Gaussian).
     #[arg(long, value_name = "PX")]
     prune: Option<f32>,
+    /// With --prune: also drop the pruned Gaussians' query tokens from the decoder itself
+    /// (cheaper decodes; the kept Gaussians change, since queries attend to each other).
+    #[arg(long, requires = "prune")]
+    drop_queries: bool,
     /// Decode N keyframes spread evenly over the times and interpolate the sets between them.
     #[arg(
         long = "keyframes",
@@ -86,6 +90,7 @@ impl ApproximationArgs {
             prune: self.prune.map(|px| Prune {
                 contribution_px: Some(px),
                 opacity: None,
+                drop_queries: self.drop_queries.then_some(true),
             }),
         }
     }
@@ -241,4 +246,39 @@ fn frame_summary(frame: &GaussianFrame) -> String {
         point(high)
     ));
     line
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use clap::Parser;
+
+    use super::*;
+
+    #[derive(Parser)]
+    struct Flags {
+        #[command(flatten)]
+        approximation: ApproximationArgs,
+    }
+
+    fn prune(args: &[&str]) -> Result<Option<Prune>, clap::Error> {
+        let flags = Flags::try_parse_from(std::iter::once("c4g").chain(args.iter().copied()))?;
+        Ok(flags.approximation.approximation().prune)
+    }
+
+    #[test]
+    fn drop_queries_is_an_option_of_pruning() {
+        let dropped = prune(&["--prune", "0.5", "--drop-queries"])
+            .unwrap()
+            .unwrap();
+        assert_eq!(dropped.drop_queries, Some(true));
+        assert_eq!(dropped.contribution_px, Some(0.5));
+        // Left out, the request says nothing of it (the server's default: keep the queries).
+        assert_eq!(
+            prune(&["--prune", "0.5"]).unwrap().unwrap().drop_queries,
+            None
+        );
+        let error = prune(&["--drop-queries"]).unwrap_err().to_string();
+        assert!(error.contains("--prune"), "{error}");
+    }
 }

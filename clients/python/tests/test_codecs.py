@@ -295,6 +295,7 @@ def test_options_serialise_to_the_apis_json():
     assert c4g.Keyframes.count(8).to_json() == {"count": 8}
     assert c4g.Keyframes.adaptive(0.005, max=32).to_json() == {"tolerance": 0.005, "max": 32}
     assert c4g.Prune(contribution_px=0.5).to_json() == {"contribution_px": 0.5}
+    assert c4g.Prune(drop_queries=True).to_json() == {"drop_queries": True}
     assert c4g.Orbit(2.0, 30).to_json() == {"kind": "orbit", "depth": 2.0, "angle_degrees": 30}
     camera = c4g.Camera(np.eye(4), c4g.Intrinsics(fx=1.0, fy=1.0))
     assert camera.to_json()["world_to_camera"] == [float(v) for v in np.eye(4).reshape(-1)]

@@ -189,6 +189,14 @@ pub fn check_body(body: &Value, max_times: usize) -> Result<(), ServiceError> {
             0.0,
             FLOAT_BOUND,
         )?;
+        // Named here: serde's own message for a wrong type names the type, not the field.
+        if let Some(drop) = prune.get("drop_queries")
+            && !drop.is_boolean()
+        {
+            return Err(ServiceError::invalid(format!(
+                "prune drop_queries is true or false, got {drop}"
+            )));
+        }
     }
     for name in ["background", "text_embedding", "negative_embedding"] {
         if let Some(Value::Array(items)) = body.get(name) {

@@ -70,13 +70,15 @@ class Keyframes:
 @dataclass(frozen=True)
 class Prune:
     """Drop the Gaussians that change nothing visible (defaults: the server's, 0.5 px and
-    1/255)."""
+    1/255). `drop_queries=True` also drops their query tokens from the decoder itself: cheaper
+    decodes, but the kept Gaussians change (queries attend to each other; docs/tradeoffs.md)."""
 
     contribution_px: Optional[float] = None
     opacity: Optional[float] = None
+    drop_queries: Optional[bool] = None
 
     def to_json(self) -> Dict[str, Any]:
-        fields = {"contribution_px": self.contribution_px, "opacity": self.opacity}
+        fields = {"contribution_px": self.contribution_px, "opacity": self.opacity, "drop_queries": self.drop_queries}
         return {k: v for k, v in fields.items() if v is not None}
 
 

@@ -177,12 +177,14 @@ class DecodeRequest(_message.Message):
     def __init__(self, clip_id: _Optional[str] = ..., times: _Optional[_Iterable[float]] = ..., precision: _Optional[_Union[Precision, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ...) -> None: ...
 
 class Prune(_message.Message):
-    __slots__ = ("contribution_px", "opacity")
+    __slots__ = ("contribution_px", "opacity", "drop_queries")
     CONTRIBUTION_PX_FIELD_NUMBER: _ClassVar[int]
     OPACITY_FIELD_NUMBER: _ClassVar[int]
+    DROP_QUERIES_FIELD_NUMBER: _ClassVar[int]
     contribution_px: float
     opacity: float
-    def __init__(self, contribution_px: _Optional[float] = ..., opacity: _Optional[float] = ...) -> None: ...
+    drop_queries: bool
+    def __init__(self, contribution_px: _Optional[float] = ..., opacity: _Optional[float] = ..., drop_queries: _Optional[bool] = ...) -> None: ...
 
 class Keyframes(_message.Message):
     __slots__ = ("every_s", "count", "adaptive")
