@@ -31,5 +31,5 @@ pub use error::RendererError;
 pub use gaussians::{CANONICAL_CHANNELS, FeatureBlock, Gaussian, GaussianSet};
 #[cfg(feature = "gpu")]
 pub use raster::gpu::GpuRasterizer;
-pub use raster::{CpuRasterizer, FeatureImage, Image, Rasterizer, RenderOptions};
+pub use raster::{CpuRasterizer, FeatureImage, Image, PixelWeight, Rasterizer, RenderOptions};
 pub use trajectory::Trajectory;

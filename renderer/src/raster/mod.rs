@@ -65,7 +65,7 @@ mod cpu;
 #[cfg(feature = "gpu")]
 pub mod gpu;
 
-pub use cpu::{CpuRasterizer, PAIR_BUDGET, TILE};
+pub use cpu::{CpuRasterizer, PAIR_BUDGET, PixelWeight, TILE};
 
 use serde::{Deserialize, Serialize};
 

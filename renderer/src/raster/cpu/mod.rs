@@ -25,10 +25,11 @@
 //! This module holds the rasterizer and the orchestration of a frame; each stage has its file:
 //! `project.rs` (Gaussian → `Splat`), `bin.rs` (the tile grid, pairs per tile, bands and the
 //! parallel counting sort) and `blend.rs` (a tile's front-to-back compositing and its write into
-//! the image).
+//! the image). `pixel.rs` evaluates the same model at single pixels, Gaussian by Gaussian.
 
 mod bin;
 mod blend;
+mod pixel;
 mod project;
 
 use std::sync::Arc;
@@ -39,6 +40,7 @@ use super::{FeatureImage, Image, Rasterizer, RenderOptions};
 use crate::{Camera, GaussianSet, RendererError};
 use bin::{Chunks, TileGrid};
 use blend::{TileAcc, TileRow, blend_tile, d2_cut};
+pub use pixel::PixelWeight;
 use project::{Splat, View};
 
 /// Tile edge in pixels.
@@ -111,6 +113,20 @@ impl CpuRasterizer {
     ) -> Result<(Image, Vec<f32>), RendererError> {
         let (image, sums) = self.run(gaussians, camera, options, true)?;
         Ok((image, sums.unwrap_or_default()))
+    }
+
+    /// Each Gaussian's blending weight (`Tᵢ · αᵢ`) at each pixel `(x, y)`, front to back, as a
+    /// render with these options composites it: the weights sum to the pixel's alpha, and
+    /// weight its depth.
+    pub fn pixel_weights(
+        &self,
+        gaussians: &GaussianSet,
+        camera: &Camera,
+        options: &RenderOptions,
+        pixels: &[(u32, u32)],
+    ) -> Result<Vec<Vec<PixelWeight>>, RendererError> {
+        options.validate()?;
+        Ok(pixel::pixel_weights(gaussians, camera, options, pixels))
     }
 
     fn run(
