@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from .config import C4GConfig
-from .model import C4G
+from .model import C4G, is_feature_stream
 
 PREFIX = "encoder."
 # Present in the official checkpoint, unused at inference: the visualisation-only DPT head.
@@ -32,15 +32,22 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     return {k[len(PREFIX) :]: v for k, v in state.items() if not k[len(PREFIX) :].startswith(IGNORED_PREFIXES)}
 
 
-def load_into(model: C4G, state: dict[str, torch.Tensor], allow_missing_feature_decoder: bool = True) -> None:
+def feature_dim_of(state: dict[str, torch.Tensor]) -> int:
+    """The feature stream's width in a state dict (without the prefix): the width of its final norm
+    `gmae_decoder.y_norm`, or 0 when the checkpoint has no feature stream."""
+    norm = state.get("gmae_decoder.y_norm.weight")
+    return int(norm.shape[0]) if norm is not None else 0
+
+
+def load_into(model: C4G, state: dict[str, torch.Tensor], allow_missing_feature_stream: bool = True) -> None:
     """Strict load: every model key present, no unexpected key, every shape equal.
 
-    The official checkpoint has no feature decoder; its weights may be missing when
-    `allow_missing_feature_decoder` (they keep their initialisation, and the caller says so)."""
+    The official checkpoint has no feature stream; its weights may be missing when
+    `allow_missing_feature_stream` (they keep their initialisation, and the caller says so)."""
     expected = model.state_dict()
     missing = sorted(k for k in expected if k not in state)
-    if allow_missing_feature_decoder:
-        missing = [k for k in missing if not k.startswith("feature_decoder.")]
+    if allow_missing_feature_stream:
+        missing = [k for k in missing if not is_feature_stream(k)]
     unexpected = sorted(k for k in state if k not in expected)
     wrong_shape = sorted(
         f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(expected[k].shape)}"
@@ -52,6 +59,9 @@ def load_into(model: C4G, state: dict[str, torch.Tensor], allow_missing_feature_
         problems.append(f"{len(missing)} missing key(s): {_listing([PREFIX + k for k in missing])}")
     if unexpected:
         problems.append(f"{len(unexpected)} unexpected key(s): {_listing([PREFIX + k for k in unexpected])}")
+        width = feature_dim_of(state)
+        if width != model.cfg.feature_dim and any(is_feature_stream(k) for k in unexpected):
+            problems.append(f"the checkpoint has a feature stream of width {width} (the configuration: feature_dim {model.cfg.feature_dim})")
     if wrong_shape:
         problems.append(f"{len(wrong_shape)} shape mismatch(es): {_listing(wrong_shape)}")
     if problems:

@@ -35,7 +35,8 @@ class C4GConfig:
     time_dim: int = 256
     # Input.
     image_size: int = 224
-    # Feature-lifting decoder: width of the 2D feature maps it lifts (0 = no feature decoder).
+    # The decoder's feature stream (feature lifting): width F of the 2D feature maps it lifts and of
+    # the per-Gaussian features it returns (0 = none: the decoder is the Gaussian stream alone).
     feature_dim: int = 0
 
     @property

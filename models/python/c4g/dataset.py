@@ -10,7 +10,9 @@ frames uint8 [C, F, H, W, 3], expected depth float16 [C, F, H, W] (world units),
 bool [C, F, H, W], world-to-camera poses float64 [C, F, 4, 4], media times float64 [C, F] and the
 scene seeds [C] and the world [] (`synthetic.make_scene`'s `world`: 1, c4g-tiny's, or 2, the wider
 one). Clip i of a split is the scene of seed `SPLITS[split][i]`, so a split is a pure function of
-its world, name and count.
+its world, name and count. With `--object-ids`, also object ids uint8 [C, F, H, W]
+(`synthetic.render_object_ids`: 0 the room, k the k-th object), the target of object-identity
+feature lifting (`c4g.train --features object-id`); without, the split is as it always was.
 
 A training sample is a window of (T - 1) s + 1 consecutive frames: every s-th one is context (stride
 s = 2 as in the paper; larger strides put wider gaps in training), the frames between them targets. Cameras and depths are expressed in the
@@ -27,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .synthetic import FPS, FRAMES, SPLITS, make_scene, normalise_to_first_camera, render_clip
+from .synthetic import FPS, FRAMES, SPLITS, make_scene, normalise_to_first_camera, render_clip, render_object_ids
 
 SIZE = 64
 
@@ -38,17 +40,19 @@ def _one_thread() -> None:
     torch.set_num_threads(1)
 
 
-def _render(job: tuple[int, int, int]) -> tuple:
-    seed, world, frames = job
+def _render(job: tuple[int, int, int, bool]) -> tuple:
+    seed, world, frames, with_ids = job
     scene = make_scene(seed, duration=(frames - 1) / FPS, world=world)
-    clip = render_clip(scene, np.arange(frames) / FPS, SIZE)
+    times = np.arange(frames) / FPS
+    clip = render_clip(scene, times, SIZE)
+    ids = render_object_ids(scene, times, SIZE) if with_ids else None
     frames = np.round(clip.frames * 255).astype(np.uint8)
-    return frames, clip.depth.astype(np.float16), clip.dynamic_mask, clip.world_to_camera, clip.times
+    return frames, clip.depth.astype(np.float16), clip.dynamic_mask, clip.world_to_camera, clip.times, ids
 
 
-def generate(split: str, count: int, out: Path, processes: int = 2, world: int = 1, frames: int = FRAMES) -> Path:
+def generate(split: str, count: int, out: Path, processes: int = 2, world: int = 1, frames: int = FRAMES, object_ids: bool = False) -> Path:
     seeds = list(SPLITS[split][:count])
-    jobs = [(s, world, frames) for s in seeds]
+    jobs = [(s, world, frames, object_ids) for s in seeds]
     if processes > 1:
         # Spawned, not forked: a fork would inherit the parent's torch and Numba thread pools.
         with get_context("spawn").Pool(processes, initializer=_one_thread) as pool:
@@ -66,6 +70,7 @@ def generate(split: str, count: int, out: Path, processes: int = 2, world: int =
         times=np.stack([r[4] for r in rows]),
         seeds=np.asarray(seeds, dtype=np.int64),
         world=np.asarray(world),
+        **({"object_ids": np.stack([r[5] for r in rows])} if object_ids else {}),
     )
     return path
 
@@ -78,11 +83,13 @@ class Split:
     world_to_camera: np.ndarray
     times: np.ndarray
     seeds: np.ndarray
+    object_ids: np.ndarray | None = None  # only in splits made with object ids
 
     @classmethod
     def load(cls, path: Path) -> "Split":
         with np.load(path) as z:
-            return cls(**{k: z[k] for k in ("frames", "depth", "dynamic", "world_to_camera", "times", "seeds")})
+            keys = ("frames", "depth", "dynamic", "world_to_camera", "times", "seeds") + (("object_ids",) if "object_ids" in z else ())
+            return cls(**{k: z[k] for k in keys})
 
     def __len__(self) -> int:
         return len(self.seeds)
@@ -100,6 +107,7 @@ class Sample:
     context: np.ndarray
     targets: np.ndarray
     scale: float  # model units per world unit
+    object_ids: np.ndarray | None = None  # [2T-1, H, W] uint8, when the split has them
 
 
 def span(context_frames: int, stride: int = 2) -> int:
@@ -123,6 +131,7 @@ def window(split: Split, clip: int, start: int, context_frames: int, stride: int
         np.arange(0, len(idx), stride),
         np.setdiff1d(np.arange(len(idx)), np.arange(0, len(idx), stride)),
         scale,
+        split.object_ids[clip, idx] if split.object_ids is not None else None,
     )
 
 
@@ -143,8 +152,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--processes", type=int, default=2)
     ap.add_argument("--world", type=int, choices=[1, 2], default=1, help="1: c4g-tiny's world; 2: the wider one")
     ap.add_argument("--frames", type=int, default=FRAMES, help="frames a clip (at 10 fps)")
+    ap.add_argument("--object-ids", action="store_true", help="also render each pixel's object id (for --features object-id training)")
     args = ap.parse_args(argv)
-    path = generate(args.split, args.count, args.out, args.processes, args.world, args.frames)
+    path = generate(args.split, args.count, args.out, args.processes, args.world, args.frames, args.object_ids)
     print(f"wrote {path} ({args.count} clips)")
     return 0
 

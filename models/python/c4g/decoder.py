@@ -1,8 +1,16 @@
-"""The time-conditioned Gaussian decoder, the Gaussian head, and the feature-lifting decoder.
+"""The time-conditioned Gaussian decoder (with its optional feature stream) and the Gaussian head.
 
 Token order inside the decoder is [context features ; queries]. Every context token gets its frame's
 time embedding; every query gets the target's. Only the query rows feed the head, so the last layer
 may compute attention outputs and the MLP for those rows alone (`query_rows_only`): an exact saving.
+
+The feature stream (feature lifting, `cfg.feature_dim` > 0) is the public C4G code's joint
+two-stream decoder (`InstillAttention` / `InstillTransformer`): a second token sequence y of the
+feature's own width F rides beside the Gaussian stream x. Each layer reuses x's attention weights
+softmax(q k^T / sqrt(d)) and adds only y's value projection `to_anotherv` (F → inner, no bias,
+applied to y without a norm), its output projection `to_yout` (inner → F), a residual, and y's own
+pre-norm MLP (F → 2F → F, the layer's third module); a final `y_norm` closes the stream. y never
+feeds back into x, so the Gaussians are those of the decoder without the stream, bit for bit.
 """
 
 from __future__ import annotations
@@ -34,15 +42,19 @@ class SinusoidalTimeEmbedding(nn.Module):
 
 
 class DecoderAttention(nn.Module):
-    """Self-attention with a bias-free fused qkv projection (`to_qkv`) and `to_out.0` (with bias)."""
+    """Self-attention with a bias-free fused qkv projection (`to_qkv`) and `to_out.0` (with bias);
+    with `feature_dim` > 0 also the feature stream's `to_anotherv` and `to_yout.0`."""
 
-    def __init__(self, dim: int, heads: int, head_dim: int):
+    def __init__(self, dim: int, heads: int, head_dim: int, feature_dim: int = 0):
         super().__init__()
         self.heads, self.head_dim = heads, head_dim
         inner = heads * head_dim
         self.norm = nn.LayerNorm(dim)
         self.to_qkv = nn.Linear(dim, 3 * inner, bias=False)
         self.to_out = nn.Sequential(nn.Linear(inner, dim))
+        if feature_dim > 0:
+            self.to_anotherv = nn.Linear(feature_dim, inner, bias=False)
+            self.to_yout = nn.Sequential(nn.Linear(inner, feature_dim))
 
     def forward(self, x: torch.Tensor, query_rows: int | None = None, qkv: torch.Tensor | None = None) -> torch.Tensor:
         """`qkv`, when given, is `to_qkv(norm(x))` computed another way (the precomputed form's first layer)."""
@@ -52,6 +64,17 @@ class DecoderAttention(nn.Module):
         if query_rows is not None:
             q = q[:, -query_rows:]
         return self.to_out(attention(q, k, v, self.heads, self.head_dim))
+
+    def two_streams(self, x: torch.Tensor, y: torch.Tensor, query_rows: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The attention outputs of both streams: x's exactly as `forward`, and y's with the same
+        weights softmax(q k^T) applied to `to_anotherv(y)`. Two attention calls rather than one on
+        values concatenated per head: x's call is then the very one `forward` makes."""
+        q, k, v = self.to_qkv(self.norm(x)).chunk(3, dim=-1)
+        if query_rows is not None:
+            q = q[:, -query_rows:]
+        x_out = self.to_out(attention(q, k, v, self.heads, self.head_dim))
+        y_out = self.to_yout(attention(q, k, self.to_anotherv(y), self.heads, self.head_dim))
+        return x_out, y_out
 
 
 class FeedForward(nn.Module):
@@ -69,27 +92,31 @@ class FeedForward(nn.Module):
 
 
 class GaussianDecoder(nn.Module):
-    """`gmae_decoder`: pre-norm transformer layers [attention, feed-forward] and a final LayerNorm."""
+    """`gmae_decoder`: pre-norm transformer layers [attention, feed-forward] and a final LayerNorm;
+    with the feature stream, layers [attention, feed-forward, the feature stream's feed-forward]
+    and `y_norm` (the public code's `InstillTransformer`, whose parameter names these are)."""
 
     def __init__(self, cfg: C4GConfig):
         super().__init__()
-        self.layers = nn.ModuleList(
-            nn.ModuleList(
-                [
-                    DecoderAttention(cfg.decoder_dim, cfg.decoder_heads, cfg.decoder_head_dim),
-                    FeedForward(cfg.decoder_dim, cfg.decoder_mlp),
-                ]
-            )
-            for _ in range(cfg.decoder_depth)
-        )
+        f = cfg.feature_dim
+
+        def layer() -> nn.ModuleList:
+            modules = [DecoderAttention(cfg.decoder_dim, cfg.decoder_heads, cfg.decoder_head_dim, f), FeedForward(cfg.decoder_dim, cfg.decoder_mlp)]
+            if f > 0:
+                modules.append(FeedForward(f, 2 * f))
+            return nn.ModuleList(modules)
+
+        self.layers = nn.ModuleList(layer() for _ in range(cfg.decoder_depth))
         self.norm = nn.LayerNorm(cfg.decoder_dim)
+        if f > 0:
+            self.y_norm = nn.LayerNorm(f)
 
     def forward(self, x: torch.Tensor, query_rows: int | None = None, first_qkv: torch.Tensor | None = None) -> torch.Tensor:
         """x [B, L, D] → [B, L, D], or [B, query_rows, D] when `query_rows` is given. `first_qkv`, when
         given, is the first layer's qkv projection [B, L, 3 inner], computed by the caller
         (`c4g.precomputed`)."""
         last = len(self.layers) - 1
-        for i, (attn, ff) in enumerate(self.layers):
+        for i, (attn, ff, *_) in enumerate(self.layers):
             rows = query_rows if i == last else None
             qkv = first_qkv if i == 0 else None
             if rows is not None:
@@ -99,28 +126,20 @@ class GaussianDecoder(nn.Module):
             x = x + ff(x)
         return self.norm(x)
 
-
-class FeatureDecoder(nn.Module):
-    """Lifts 2D feature maps onto the Gaussians by reusing the Gaussian decoder's attention.
-
-    A second token stream [context feature maps zero-padded to the decoder width ; learned queries]
-    runs beside the Gaussian decoder. Each layer takes that layer's attention weights softmax(q k^T)
-    from the Gaussian decoder and adds only its own value projection (`to_v`, no bias), output
-    projection (`to_out.0`) and feed-forward. A final LayerNorm and a linear head give one feature
-    vector per Gaussian. (C3G's design; C4G's repository has no feature decoder, so the names are ours.)
-    """
-
-    def __init__(self, cfg: C4GConfig):
-        super().__init__()
-        d, inner = cfg.decoder_dim, cfg.decoder_heads * cfg.decoder_head_dim
-        self.layers = nn.ModuleList(
-            nn.ModuleDict(
-                {"to_v": nn.Linear(d, inner, bias=False), "to_out": nn.Sequential(nn.Linear(inner, d)), "ff": FeedForward(d, cfg.decoder_mlp)}
-            )
-            for _ in range(cfg.decoder_depth)
-        )
-        self.norm = nn.LayerNorm(d)
-        self.head = nn.Linear(d, cfg.feature_dim)
+    def two_streams(self, x: torch.Tensor, y: torch.Tensor, query_rows: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """x [B, L, D] and the feature stream y [B, L, F] → both after the last layer and their final
+        norms ([B, query_rows, ·] when `query_rows` is given). x follows exactly the steps of `forward`."""
+        last = len(self.layers) - 1
+        for i, (attn, ff, ff_y) in enumerate(self.layers):
+            rows = query_rows if i == last else None
+            x_attn, y_attn = attn.two_streams(x, y, rows)
+            if rows is not None:
+                x, y = x[:, -rows:], y[:, -rows:]
+            x = x + x_attn
+            y = y + y_attn
+            x = x + ff(x)
+            y = y + ff_y(y)
+        return self.norm(x), self.y_norm(y)
 
 
 def activate(raw: torch.Tensor, anchors: torch.Tensor) -> dict[str, torch.Tensor]:

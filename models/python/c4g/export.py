@@ -17,6 +17,12 @@ result up to float rounding). The decoder also takes `query_indices` (int64 [Q])
 queries alone, an approximation the service uses to drop pruned Gaussians from the decoder itself
 (`c4g.query_subset`). It defaults to every query, so a caller that leaves it out gets the full
 decode; `--no-query-subset` writes a decoder without it, as packages made before it.
+
+A model with a feature stream (`--feature-dim`, or a checkpoint that has one) also gets
+`feature_decoder.onnx`: the joint two-stream decoder, which takes the context frames' 2D feature
+maps as well and returns the per-Gaussian features beside the Gaussians. It takes the features in
+both decoder forms (the engine runs it only when features are asked for); `decoder.onnx` stays the
+Gaussian stream alone, so a package's Gaussians do not depend on whether it lifts features.
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ import torch
 from torch import nn
 
 from .attention import fused_export
-from .checkpoint import CheckpointError, load_into, read_state_dict, sha256
+from .checkpoint import CheckpointError, feature_dim_of, load_into, read_state_dict, sha256
 from .config import PRESETS, C4GConfig
 from .decoder import to_canonical
 from .init import random_init
@@ -52,6 +58,10 @@ DECODER_FORMS = ("precomputed", "plain")
 # (docs/benchmarks.md): at width 128 (c4g-tiny) it is about 25 % slower, at 512 as fast or faster,
 # at 2048 (the official model) faster.
 PRECOMPUTED_FROM_WIDTH = 512
+# What a package's feature stream was trained to lift (`feature_decoder.kind` in model.json): the
+# encoder's own patch features (the maps are the encoding's features, F = the feature width), or
+# object identity (the maps are one-hot object ids per patch, F = the number of ids).
+FEATURE_KINDS = ("encoder", "object-id")
 GAUSSIAN_LAYOUT = [
     "x", "y", "z", "scale_x", "scale_y", "scale_z", "rot_w", "rot_x", "rot_y", "rot_z", "opacity", "r", "g", "b",
 ]  # fmt: skip
@@ -104,12 +114,15 @@ class ContextProjectionGraph(nn.Module):
 
 
 class FeatureDecoderGraph(nn.Module):
+    """The joint two-stream decoder: features + times + context feature maps → gaussians (equal to
+    decoder.onnx's up to float rounding) and gaussian_features."""
+
     def __init__(self, model: C4G):
         super().__init__()
         self.model = model
 
-    def forward(self, features, context_times, target_times, context_feature_maps) -> torch.Tensor:
-        return self.model.decode_features(features, context_times, target_times, context_feature_maps)
+    def forward(self, features, context_times, target_times, context_feature_maps) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.model.decode_with_features(features, context_times, target_times, context_feature_maps)
 
 
 def _export_graph(
@@ -203,6 +216,19 @@ def chosen_decoder_form(form: str, cfg: C4GConfig) -> str:
     return form
 
 
+def declared_feature_kind(kind: str | None, training: dict | None, cfg: C4GConfig) -> str | None:
+    """What the feature stream lifts: `kind`, else the training recipe's `features`, else None (not
+    declared: random or untrained feature weights lift any F-wide maps equally badly)."""
+    kind = kind or (training or {}).get("features")
+    if kind in (None, "none"):
+        return None
+    if kind not in FEATURE_KINDS:
+        raise ValueError(f"unknown feature kind {kind!r} (known: {', '.join(FEATURE_KINDS)})")
+    if kind == "encoder" and cfg.feature_dim != cfg.feature_width:
+        raise ValueError(f"an encoder-feature stream lifts the encoder's {cfg.feature_width}-wide features, not {cfg.feature_dim}-wide ones")
+    return kind
+
+
 def declared_time_policy(training: dict | None) -> str:
     """The `time_policy` a package declares: the one its training recipe names (our own models), else
     frame-step (the official weights, trained on integer frame indices, where frame-step is the reference)."""
@@ -233,6 +259,7 @@ def export_package(
     fused_attention: bool = True,
     training: dict | None = None,
     decoder_form: str = "auto",
+    feature_kind: str | None = None,
     query_subset: bool = True,
 ) -> dict:
     """Write the package for `model` into `out` and return its manifest.
@@ -241,11 +268,13 @@ def export_package(
     CPU, fused kernels on CUDA); without it, as plain MatMul / Softmax (any ONNX runtime).
     `decoder_form` "precomputed" adds `context_projection.onnx` and a decoder that takes its output
     (docs/package.md); "plain" writes a decoder that takes the features alone; "auto" picks the
-    faster for the model's size (`chosen_decoder_form`). `query_subset` gives the decoder its
+    faster for the model's size (`chosen_decoder_form`). `feature_kind` (or the recipe's `features`)
+    is declared as what a feature stream lifts (`FEATURE_KINDS`). `query_subset` gives the decoder its
     `query_indices` input (`c4g.query_subset`), declared as `decoder_query_subset`."""
     model = model.eval()
     cfg = model.cfg
     decoder_form = chosen_decoder_form(decoder_form, cfg)
+    feature_kind = declared_feature_kind(feature_kind, training, cfg) if model.has_feature_stream else None
     out.mkdir(parents=True, exist_ok=True)
     t, b, p, c = 2, 2, cfg.tokens_per_frame, cfg.feature_width
     frames = torch.zeros(t, 3, cfg.image_size, cfg.image_size)
@@ -261,7 +290,7 @@ def export_package(
         else:
             export_plain_decoder(model, out / files["decoder"], query_subset)
             (out / "context_projection.onnx").unlink(missing_ok=True)
-        if model.feature_decoder is not None:
+        if model.has_feature_stream:
             files["feature_decoder"] = "feature_decoder.onnx"
             maps = torch.zeros(t, p, cfg.feature_dim)
             _export_graph(
@@ -269,7 +298,7 @@ def export_package(
                 (features, ctx, tgt, maps),
                 out / files["feature_decoder"],
                 {**DECODER_INPUTS, "context_feature_maps": {0: "T"}},
-                {"gaussian_features": {0: "B"}},
+                {"gaussians": {0: "B"}, "gaussian_features": {0: "B"}},
             )
         elif (out / "feature_decoder.onnx").exists():
             (out / "feature_decoder.onnx").unlink()
@@ -303,8 +332,10 @@ def export_package(
         "parameters": sum(v.numel() for v in model.state_dict().values()),
         "architecture": cfg.to_dict(),
     }
-    if model.feature_decoder is not None:
+    if model.has_feature_stream:
         manifest["feature_decoder"] = {"feature_width": cfg.feature_dim}
+        if feature_kind is not None:
+            manifest["feature_decoder"]["kind"] = feature_kind
     if training is not None:
         manifest["training"] = training
     (out / "model.json").write_text(json.dumps(manifest, indent=2) + "\n")
@@ -322,7 +353,7 @@ def readable_by_all(package: Path) -> None:
 
 def build_model(cfg: C4GConfig, seed: int, checkpoint: Path | None) -> C4G:
     """The model the tool exports: seeded random weights, overwritten by the checkpoint when given
-    (so only what the checkpoint lacks, such as a feature decoder, keeps its random weights)."""
+    (so only what the checkpoint lacks, such as a feature stream, keeps its random weights)."""
     model = C4G(cfg)
     random_init(model, seed=seed)
     if checkpoint is not None:
@@ -330,11 +361,15 @@ def build_model(cfg: C4GConfig, seed: int, checkpoint: Path | None) -> C4G:
     return model.eval()
 
 
-def _config(arg: str, feature_dim: int) -> C4GConfig:
+def _config(arg: str, feature_dim: int | None, checkpoint: Path | None = None) -> C4GConfig:
+    """The size preset or JSON config, with the feature stream's width: `feature_dim` when given,
+    else the checkpoint's (0 when it has none, or without a checkpoint)."""
     if arg in PRESETS:
         base = PRESETS[arg].to_dict()
     else:
         base = json.loads(Path(arg).read_text())
+    if feature_dim is None:
+        feature_dim = feature_dim_of(read_state_dict(checkpoint)) if checkpoint is not None and checkpoint.exists() else 0
     base["feature_dim"] = feature_dim
     return C4GConfig.from_dict(base)
 
@@ -345,7 +380,13 @@ def main(argv: list[str] | None = None) -> int:
     src.add_argument("--checkpoint", type=Path, help="checkpoint in the official layout (local path)")
     src.add_argument("--random-init", action="store_true", help="random weights (to measure cost at a given size)")
     ap.add_argument("--config", default="official", help=f"size preset ({', '.join(PRESETS)}) or a JSON file of C4GConfig fields")
-    ap.add_argument("--feature-dim", type=int, default=0, help="add a feature-lifting decoder for F-wide 2D features (0: none)")
+    ap.add_argument(
+        "--feature-dim",
+        type=int,
+        default=None,
+        help="width F of the feature stream (feature lifting; 0: none); default: the checkpoint's (0 without one)",
+    )
+    ap.add_argument("--feature-kind", choices=FEATURE_KINDS, default=None, help="what the feature stream lifts (declared in model.json)")
     ap.add_argument("--seed", type=int, default=0, help="seed for random weights (the model, or the feature decoder only)")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--name", default=None)
@@ -379,7 +420,11 @@ def main(argv: list[str] | None = None) -> int:
         help="what the graphs compute in: f16 (weights and activations) or int8 (the large MatMuls); see c4g.precision",
     )
     args = ap.parse_args(argv)
-    cfg = _config(args.config, args.feature_dim)
+    try:
+        cfg = _config(args.config, args.feature_dim, args.checkpoint)
+    except CheckpointError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     try:
         model = build_model(cfg, args.seed, args.checkpoint)
     except (CheckpointError, FileNotFoundError) as e:
@@ -387,7 +432,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.checkpoint:
         provenance = {"kind": "checkpoint", "source": args.checkpoint.name, "sha256": sha256(args.checkpoint)}
-        if cfg.feature_dim:
+        if cfg.feature_dim and feature_dim_of(read_state_dict(args.checkpoint)) == 0:
             provenance["feature_decoder"] = f"random init, seed {args.seed} (the checkpoint has none)"
     else:
         provenance = {"kind": "random-init", "seed": args.seed}
@@ -396,6 +441,7 @@ def main(argv: list[str] | None = None) -> int:
     manifest = export_package(
         model, args.out, name, args.version, provenance, args.description,
         fused_attention=args.attention == "fused", training=training, decoder_form=args.decoder_form,
+        feature_kind=args.feature_kind,
         query_subset=args.query_subset,
     )  # fmt: skip
     if args.precision != "f32":

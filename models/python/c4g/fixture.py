@@ -13,8 +13,14 @@ layout, every width shrunk) exported in both decoder forms, `plain/` and `precom
 PyTorch mirror's outputs on seeded frames, so that a test can hold both forms to each other and to
 the mirror.
 
+`models/fixtures/feature-stream/` (`--feature-stream`): a very small seeded random model with a
+feature stream that lifts the encoder's own features (`feature_decoder.kind` "encoder": the context
+feature maps are the encoding's features, F = C), with the mirror's Gaussians and per-Gaussian
+features, for the engine's feature lifting to be held to.
+
     python -m c4g.fixture --shared ../shared --out models/fixtures/c4g-small
     python -m c4g.fixture --decoder-forms --out models/fixtures/decoder-forms
+    python -m c4g.fixture --feature-stream --out models/fixtures/feature-stream
 """
 
 from __future__ import annotations
@@ -151,13 +157,59 @@ def build_decoder_forms(out: Path) -> None:
     (out / "reference.json").write_text(json.dumps(meta, indent=2) + "\n")
 
 
+# The feature-stream fixture: FORMS_CONFIG's sizes with a stream as wide as the encoder's features.
+FEATURE_STREAM_CONFIG = C4GConfig.from_dict({**FORMS_CONFIG.to_dict(), "feature_dim": FORMS_CONFIG.feature_width})
+FEATURE_STREAM_SEED = 8
+
+
+def build_feature_stream(out: Path) -> None:
+    cfg = FEATURE_STREAM_CONFIG
+    model = C4G(cfg)
+    random_init(model, seed=FEATURE_STREAM_SEED)
+    model.eval()
+    provenance = {"kind": "random-init", "seed": FEATURE_STREAM_SEED}
+    export_package(
+        model, out, "feature-stream", "0.1.0", provenance,
+        "Test fixture: a very small random model whose feature stream lifts its encoder's features.",
+        decoder_form="plain", feature_kind="encoder",
+    )  # fmt: skip
+    rng = np.random.default_rng(FEATURE_STREAM_SEED)
+    n_frames = max(len(c[1]) for c in FORMS_CASES)
+    frames = rng.uniform(-1.0, 1.0, (n_frames, 3, cfg.image_size, cfg.image_size)).astype(np.float32)
+    tensors = {"frames": frames}
+    index = []
+    with torch.no_grad():
+        for name, times, targets in FORMS_CASES:
+            t = len(times)
+            features = model.encode(torch.from_numpy(frames[:t]))
+            ctx, tgt = (torch.from_numpy(a) for a in normalise_batch(times, targets, "stable"))
+            gaussians, lifted = model.decode_with_features(features, ctx, tgt, features)
+            tensors[f"{name}/features"] = features.numpy()
+            tensors[f"{name}/gaussians"] = gaussians.numpy()
+            tensors[f"{name}/gaussian_features"] = lifted.numpy()
+            index.append({"case": name, "frames": t, "times": times, "targets": targets, "policy": "stable"})
+    save_file({k: np.ascontiguousarray(v) for k, v in tensors.items()}, str(out / "reference.safetensors"))
+    meta = {
+        "about": "One seeded random model (c4g.fixture FEATURE_STREAM_CONFIG) with a feature stream of kind 'encoder', and the PyTorch mirror's outputs; made by c4g.fixture --feature-stream.",
+        "frames": "frames [T, 3, H, W]: seeded uniform noise in [-1, 1], the encoder's input; case k uses the first T",
+        "feature_maps": "the kind is 'encoder': feature_decoder.onnx's context_feature_maps are the case's features themselves",
+        "outputs": "<case>/features [T, P, C]; <case>/gaussians [B, N, 14] canonical layout (decoder.onnx's, and feature_decoder.onnx's 'gaussians'); <case>/gaussian_features [B, N, F]",
+        "cases": index,
+    }
+    (out / "reference.json").write_text(json.dumps(meta, indent=2) + "\n")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shared", type=Path, default=Path("../shared"))
     ap.add_argument("--decoder-forms", action="store_true", help="build the decoder-forms fixture instead of c4g-small")
-    ap.add_argument("--out", type=Path, default=None, help="default: models/fixtures/c4g-small (or decoder-forms)")
+    ap.add_argument("--feature-stream", action="store_true", help="build the feature-stream fixture instead of c4g-small")
+    ap.add_argument("--out", type=Path, default=None, help="default: models/fixtures/c4g-small (or decoder-forms, feature-stream)")
     args = ap.parse_args()
-    if args.decoder_forms:
+    if args.feature_stream:
+        out = args.out or Path("models/fixtures/feature-stream")
+        build_feature_stream(out)
+    elif args.decoder_forms:
         out = args.out or Path("models/fixtures/decoder-forms")
         build_decoder_forms(out)
     else:

@@ -8,20 +8,23 @@ from __future__ import annotations
 
 import torch
 
-from .model import C4G
+from .model import C4G, is_feature_stream
 
 
 @torch.no_grad()
 def random_init(model: C4G, seed: int, only_prefix: str | None = None) -> None:
     gen = torch.Generator().manual_seed(seed)
-    for name, p in model.named_parameters():
+    # The feature stream's parameters are drawn last, so that a seed gives the same Gaussian
+    # decoder with or without a feature stream (its parameters sit inside the decoder's layers).
+    params = sorted(model.named_parameters(), key=lambda item: is_feature_stream(item[0]))
+    for name, p in params:
         if only_prefix and not name.startswith(only_prefix):
             continue
         if name.endswith("gamma"):
             p.copy_(torch.rand(p.shape, generator=gen) * 0.25 + 0.05)
         elif name.endswith(("cls_token", "pos_embed", "register_tokens", "camera_token", "register_token", "mask_token")):
             p.copy_(torch.randn(p.shape, generator=gen) * 0.5)
-        elif name == "gaussian_tokens":
+        elif name in ("gaussian_tokens", "gaussian_tokens_feature"):
             p.copy_(torch.randn(p.shape, generator=gen))
         elif p.ndim >= 2:
             fan_in = p[0].numel()

@@ -2,19 +2,32 @@
 
 encode: frames [T, 3, H, W] in [-1, 1] → features [T, P, C]
 decode: features + normalised context times [B, T] + normalised target times [B] → Gaussians [B, N, ...]
-decode_features: the same plus 2D feature maps [T, P, F] → per-Gaussian features [B, N, F]
+decode_with_features: the same plus 2D feature maps [T, P, F] → Gaussians and per-Gaussian
+features [B, N, F] (the feature stream, `cfg.feature_dim` > 0; see `decoder`)
 """
 
 from __future__ import annotations
 
+import re
+
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from .aggregator import Aggregator
-from .attention import attention
 from .config import C4GConfig
-from .decoder import FeatureDecoder, GaussianDecoder, SinusoidalTimeEmbedding, activate, to_canonical
+from .decoder import GaussianDecoder, SinusoidalTimeEmbedding, activate, to_canonical
+
+# The feature stream's parameters (official-layout names, minus the `encoder.` prefix): inside the
+# decoder's layers `to_anotherv`, `to_yout` and the third module (y's MLP), `y_norm`, and beside it
+# the feature stream's query tokens and its head. Nothing else depends on them.
+FEATURE_STREAM = re.compile(
+    r"^(gmae_decoder\.layers\.\d+\.(0\.to_anotherv|0\.to_yout|2)\.|gmae_decoder\.y_norm\.|gaussian_tokens_feature$|feature_gmae_to_gaussians\.)"
+)
+
+
+def is_feature_stream(name: str) -> bool:
+    """Whether the parameter `name` belongs to the feature stream."""
+    return FEATURE_STREAM.match(name) is not None
 
 
 class Backbone(nn.Module):
@@ -40,7 +53,17 @@ class C4G(nn.Module):
         self.time_mlp = nn.Sequential(nn.Linear(cfg.time_dim, cfg.time_dim), nn.ReLU(), nn.Linear(cfg.time_dim, d), nn.ReLU())
         self.gmae_decoder = GaussianDecoder(cfg)
         self.gmae_to_gaussians = nn.Linear(d, 14)
-        self.feature_decoder = FeatureDecoder(cfg) if cfg.feature_dim > 0 else None
+        if cfg.feature_dim > 0:
+            # The feature stream's query-position tokens (its learnable tokens at the feature's own
+            # width) and the linear head from each query's final y to its Gaussian's feature, named as
+            # in the public code (`gaussian_tokens_feature`, `feature_gmae_to_gaussians`).
+            f = cfg.feature_dim
+            self.gaussian_tokens_feature = nn.Parameter(torch.zeros(cfg.queries, f))
+            self.feature_gmae_to_gaussians = nn.Linear(f, f)
+
+    @property
+    def has_feature_stream(self) -> bool:
+        return self.cfg.feature_dim > 0
 
     # -- encoder -----------------------------------------------------------------------------------
     def encode(self, frames: torch.Tensor, **precomputed) -> torch.Tensor:
@@ -85,31 +108,35 @@ class C4G(nn.Module):
         return to_canonical(self.decode(features, context_times, target_times))
 
     # -- feature lifting ---------------------------------------------------------------------------
-    def decode_features(
-        self, features: torch.Tensor, context_times: torch.Tensor, target_times: torch.Tensor, feature_maps: torch.Tensor
-    ) -> torch.Tensor:
-        """Per-Gaussian features [B, N, F] from 2D feature maps [T, P, F] (one vector per patch)."""
-        if self.feature_decoder is None:
-            raise ValueError("this model has no feature decoder (feature_dim = 0)")
-        cfg, fd = self.cfg, self.feature_decoder
-        n, d = cfg.queries, cfg.decoder_dim
-        b = target_times.shape[0]
+    def feature_tokens(self, feature_maps: torch.Tensor, batch: int) -> torch.Tensor:
+        """The feature stream's input [B, T*P + N, F]: each context frame's 2D feature map, one F-wide
+        vector per patch (in the order of the context tokens), then the feature query tokens. y gets
+        no time embedding: time reaches it only through x's attention weights."""
+        t, p, f = feature_maps.shape
+        context = feature_maps.reshape(1, t * p, f).expand(batch, -1, -1)
+        return torch.cat((context, self.gaussian_tokens_feature[None].expand(batch, -1, -1)), dim=1)
+
+    def decode_raw_with_features(
+        self, features, context_times, target_times, feature_maps, query_rows_only: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raw head output [B, N, 14] (equal to `decode_raw`'s) and per-Gaussian features [B, N, F]."""
+        if not self.has_feature_stream:
+            raise ValueError("this model has no feature stream (feature_dim = 0)")
+        n = self.cfg.queries
+        # Checked in PyTorch only: an exported graph's shapes are the engine's contract to check.
+        if not torch.jit.is_tracing() and feature_maps.shape != (*features.shape[:2], self.cfg.feature_dim):
+            raise ValueError(f"feature maps {tuple(feature_maps.shape)} do not match features {tuple(features.shape)} at width {self.cfg.feature_dim}")
         x = self.time_conditioned_tokens(features, context_times, target_times)
-        maps = F.pad(feature_maps, (0, d - feature_maps.shape[-1])).reshape(1, -1, d).expand(b, -1, -1)
-        f = torch.cat((maps, self.gaussian_tokens[None].expand(b, -1, -1)), dim=1)
-        last = len(self.gmae_decoder.layers) - 1
-        heads, head_dim = cfg.decoder_heads, cfg.decoder_head_dim
-        for i, ((attn, ff), fl) in enumerate(zip(self.gmae_decoder.layers, fd.layers)):
-            keep = slice(-n, None) if i == last else slice(None)
-            q, k, v = attn.to_qkv(attn.norm(x)).chunk(3, dim=-1)
-            # One attention call for both streams: the same weights softmax(q k^T) apply to the
-            # Gaussian values and the feature values, concatenated per head.
-            values = torch.cat(
-                (v.reshape(b, -1, heads, 1, head_dim), fl["to_v"](f).reshape(b, -1, heads, 1, head_dim)), dim=3
-            ).reshape(b, -1, heads * 2 * head_dim)
-            out = attention(q[:, keep], k, values, heads, head_dim).reshape(b, -1, heads, 2, head_dim)
-            x = x[:, keep] + attn.to_out(out[:, :, :, 0].reshape(b, -1, heads * head_dim))
-            x = x + ff(x)
-            f = f[:, keep] + fl["to_out"](out[:, :, :, 1].reshape(b, -1, heads * head_dim))
-            f = f + fl["ff"](f)
-        return fd.head(fd.norm(f))
+        y = self.feature_tokens(feature_maps.to(x.dtype), x.shape[0])
+        x, y = self.gmae_decoder.two_streams(x, y, query_rows=n if query_rows_only else None)
+        return self.gmae_to_gaussians(x[:, -n:]), self.feature_gmae_to_gaussians(y[:, -n:])
+
+    def decode_with_features(self, features, context_times, target_times, feature_maps) -> tuple[torch.Tensor, torch.Tensor]:
+        """Gaussians [B, N, 14] in the canonical layout and the per-Gaussian features [B, N, F] lifted
+        from `feature_maps` [T, P, F] (one F-wide vector per patch of each context frame)."""
+        raw, lifted = self.decode_raw_with_features(features, context_times, target_times, feature_maps)
+        return to_canonical(activate(raw, self.anchor_positions.to(raw.dtype))), lifted
+
+    def decode_features(self, features, context_times, target_times, feature_maps) -> torch.Tensor:
+        """Per-Gaussian features [B, N, F] alone (see `decode_with_features`)."""
+        return self.decode_raw_with_features(features, context_times, target_times, feature_maps)[1]

@@ -230,6 +230,12 @@ class Scene:
         counts = [len(self.background.opacities)] + [len(o.block.opacities) for o in self.objects]
         return np.concatenate([np.full(c, i > 0) for i, c in enumerate(counts)])
 
+    def object_ids(self) -> np.ndarray:
+        """Each Gaussian's object id, in the order of `gaussians(t)`: 0 for the room, k for the k-th
+        object (ids are per scene: object 1 of one clip has nothing to do with object 1 of another)."""
+        counts = [len(self.background.opacities)] + [len(o.block.opacities) for o in self.objects]
+        return np.concatenate([np.full(c, i, dtype=np.int64) for i, c in enumerate(counts)])
+
     def tracks_3d(self, t: float) -> np.ndarray:
         """World positions [K, 3] of the tracked object points at time t."""
         if not self.objects:
@@ -505,3 +511,31 @@ def render_clip(scene: Scene, times: np.ndarray, size: int, cameras: np.ndarray 
         np.asarray(times, dtype=np.float64), r["rgb"].clamp(0, 1).numpy().astype(np.float32), depth.astype(np.float32),
         r["alpha"].numpy().astype(np.float32), dyn.numpy() > 0.5, w2c, np.array([fx, fy, cx, cy]), pts, uv, visible,
     )  # fmt: skip
+
+
+# Object ids a render can tell apart: the room and up to 7 objects (world 1 has at most 4, world 2 5).
+OBJECT_IDS = 8
+
+
+def render_object_ids(scene: Scene, times: np.ndarray, size: int, cameras: np.ndarray | None = None) -> np.ndarray:
+    """The object id [T, H, W] (uint8, `Scene.object_ids`) that carries most of each pixel's
+    weight, rendered like `render_clip` (same cameras, same Gaussians) but separately from it, so
+    that the clips it makes stay exactly as they were. Each id's one-hot indicator is composited as a
+    colour channel, three ids a render."""
+    ids = scene.object_ids()
+    if ids.max() >= OBJECT_IDS:
+        raise ValueError(f"scene {scene.seed} has {ids.max()} objects; object-id renders tell {OBJECT_IDS - 1} apart")
+    fx, fy, cx, cy = (v * size for v in scene.normalised_intrinsics)
+    w2c = torch.from_numpy(np.stack([scene.camera(float(t)) if cameras is None else cameras[i] for i, t in enumerate(times)]))
+    sets = [scene.gaussians(float(t)) for t in times]
+    f64 = lambda key: torch.from_numpy(np.stack([getattr(g, key) for g in sets]))  # noqa: E731
+    rots = torch.from_numpy(np.stack([_matrix_to_wxyz(g.rotations) for g in sets]))
+    args = (f64("means"), f64("scales"), rots, f64("opacities"))
+    count = int(ids.max()) + 1
+    one_hot = np.eye(3 * -(-count // 3))[ids]  # [N, ids rounded up to a multiple of 3]
+    weights = []
+    with torch.no_grad():
+        for first in range(0, one_hot.shape[1], 3):
+            channels = torch.from_numpy(np.broadcast_to(one_hot[None, :, first : first + 3], (len(times), len(ids), 3)).copy())
+            weights.append(render_batch(*args, channels, (fx, fy, cx, cy), w2c, size, size)["rgb"])
+    return torch.cat(weights, dim=-1)[..., :count].argmax(dim=-1).numpy().astype(np.uint8)

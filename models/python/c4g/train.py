@@ -12,6 +12,12 @@ Loss: MSE (dynamic pixels up-weighted) + SSIM term + inverse-depth L1 + alpha MS
 (each Gaussian to the nearest visible ground-truth surface point, and its colour; every such point
 to its nearest Gaussian).
 
+Feature lifting (`--features encoder|object-id`, default none: c4g-tiny's recipe): the model gets a
+feature stream (`c4g.decoder`) as wide as the lifted feature, which takes the context frames' 2D
+feature maps; its per-Gaussian features are rendered like colours at each view's camera and held
+to the view's own 2D features by an L1 term weighted `--feature-weight` (`c4g.lifting` says what
+each kind's maps and targets are). Object ids need a split made with `c4g.dataset --object-ids`.
+
 Outputs in --run: `last.pt` (full training state, for resuming), `log.jsonl`, and on completion
 `c4g-tiny.ckpt` (weights in the official checkpoint layout, for `python -m c4g.export`) and
 `recipe.json` (every setting and seed, recorded into the package's model.json).
@@ -41,7 +47,8 @@ import torch
 import torch.nn.functional as F
 
 from .config import C4GConfig
-from .decoder import SH_C0, to_canonical
+from . import lifting
+from .decoder import SH_C0, activate, to_canonical
 from .dataset import Sample, Split, random_windows, span, window
 from .model import C4G
 from .raster_fast import render_batch
@@ -93,6 +100,8 @@ def initialise(model: C4G, seed: int) -> None:
         elif name.endswith(("cls_token", "pos_embed", "register_tokens", "camera_token", "register_token", "mask_token")):
             p.normal_(0.0, 0.02)
     model.gaussian_tokens.normal_(0.0, 1.0)
+    if model.has_feature_stream:
+        model.gaussian_tokens_feature.normal_(0.0, 1.0)
     # Patch positions start as a 2D sinusoidal code rather than near-zero noise: the decoder has no
     # positional encoding of its own, so queries can only find "their" part of the image through
     # positions carried in the features, and with a 0.02-scale code that signal starts buried.
@@ -146,7 +155,7 @@ def initialise_from_data(model: C4G, split: Split, clips: int = 24) -> None:
     tokens = per_position.repeat_interleave(per_patch, dim=0)
     spread = per_position.std(dim=0, keepdim=True)
     model.gaussian_tokens.copy_(tokens + 0.1 * spread * torch.randn_like(tokens))
-    for attn, _ff in model.gmae_decoder.layers:
+    for attn, *_ in model.gmae_decoder.layers:
         inner = attn.heads * attn.head_dim
         w = attn.to_qkv.weight
         w[inner : 2 * inner] = w[:inner]
@@ -222,20 +231,34 @@ def split_canonical(gaussians: torch.Tensor) -> tuple[torch.Tensor, ...]:
     return g[..., 0:3], g[..., 3:6], g[..., 6:10], g[..., 10], g[..., 11:14]
 
 
-def predict(model: C4G, sample: Sample, views: np.ndarray, policy: str = "stable") -> tuple[dict[str, torch.Tensor], tuple]:
+def predict(
+    model: C4G, sample: Sample, views: np.ndarray, policy: str = "stable", features_kind: str | None = None
+) -> tuple[dict[str, torch.Tensor], tuple]:
+    """Encode the sample's context frames, decode at the times of `views` (window indices) and render
+    each at its camera. Returns (the renders, the Gaussians as render_batch arguments). With
+    `features_kind`, the feature stream lifts that kind's context maps too, and the renders hold the
+    rendered features ("features" [V, H, W, F])."""
     # The source frame step the `frame-step` policy reads: the clips' own (frames are evenly timed).
     frame_step = float(sample.times[1] - sample.times[0]) if len(sample.times) > 1 else None
-    """Encode the sample's context frames, decode at the times of `views` (window indices) and render
-    each at its camera. Returns (the renders, the Gaussians as render_batch arguments)."""
     frames = torch.from_numpy(sample.frames[sample.context]).permute(0, 3, 1, 2) * 2 - 1
     features = model.encode(frames)
     ctx_times, tgt_times = normalise_batch(sample.times[sample.context].tolist(), sample.times[views].tolist(), policy, frame_step)
-    decoded = model.decode(features, torch.from_numpy(ctx_times), torch.from_numpy(tgt_times))
+    ctx_times, tgt_times = torch.from_numpy(ctx_times), torch.from_numpy(tgt_times)
+    if features_kind is None:
+        decoded, lifted = model.decode(features, ctx_times, tgt_times), None
+    else:
+        maps = lifting.context_maps(model, sample, features, features_kind)
+        raw, lifted = model.decode_raw_with_features(features, ctx_times, tgt_times, maps)
+        decoded = activate(raw, model.anchor_positions.to(raw.dtype))
     size = model.cfg.image_size
     f = INTRINSICS_NORMALISED * size
+    intrinsics = (f, f, size / 2, size / 2)
     poses = torch.from_numpy(sample.world_to_camera[views]).float()
     gaussians = split_canonical(to_canonical(decoded))
-    return render_batch(*gaussians, (f, f, size / 2, size / 2), poses, size, size), gaussians
+    out = render_batch(*gaussians, intrinsics, poses, size, size)
+    if lifted is not None:
+        out["features"] = lifting.render_features(gaussians, lifted, intrinsics, poses, size)
+    return out, gaussians
 
 
 def surface_points(sample: Sample, views: np.ndarray, count: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -315,6 +338,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--depth-weight", type=float, default=0.1)
     ap.add_argument("--alpha-weight", type=float, default=0.1)
     ap.add_argument("--surface-weight", type=float, default=0.5, help="weight of the Chamfer position and colour terms")
+    ap.add_argument("--features", choices=["none", *lifting.KINDS], default="none", help="feature lifting: what the feature stream learns to lift")
+    ap.add_argument("--feature-weight", type=float, default=1.0, help="weight of the rendered features' L1 term")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--checkpoint-every", type=int, default=100)
@@ -326,13 +351,19 @@ def main(argv: list[str] | None = None) -> int:
     # Defaults that c4g-tiny (v1) was trained before they existed are left out of its recipe, so
     # its runs still resume and its recipe stays as it was.
     v1_defaults = {"strides": "2", "time_policy": "stable"}
+    # Feature lifting's settings are recorded only when it is on (so a run without stays c4g-tiny's).
+    lifting_settings = ("features", "feature_weight") if args.features == "none" else ()
     recipe = {
         k: (str(v) if isinstance(v, Path) else v)
         for k, v in vars(args).items()
-        if k not in ("run", "threads", "checkpoint_every", "validate_every", "stop_after") and v1_defaults.get(k, object()) != v
+        if k not in ("run", "threads", "checkpoint_every", "validate_every", "stop_after", *lifting_settings) and v1_defaults.get(k, object()) != v
     }
+    features_kind = None if args.features == "none" else args.features
+    cfg = TINY
+    if features_kind is not None:
+        cfg = C4GConfig.from_dict({**TINY.to_dict(), "feature_dim": lifting.feature_width(features_kind, TINY.feature_width)})
     recipe.update(
-        config=TINY.to_dict(),
+        config=cfg.to_dict(),
         scale_gain=SCALE_GAIN,
         attention_sharpness=ATTENTION_SHARPNESS,
         position_code_amplitude=POSITION_CODE_AMPLITUDE,
@@ -343,7 +374,10 @@ def main(argv: list[str] | None = None) -> int:
 
     train, val = Split.load(args.data / "train.npz"), Split.load(args.data / "validation.npz")
     recipe.update(train_clips=len(train), validation_clips=len(val), train_seeds=[int(train.seeds.min()), int(train.seeds.max())])
-    model = C4G(TINY)
+    if features_kind == "object-id" and train.object_ids is None:
+        print("error: --features object-id needs a split made with object ids (python -m c4g.dataset --object-ids)", file=sys.stderr)
+        return 2
+    model = C4G(cfg)
     initialise(model, args.seed)
     initialise_from_data(model, train)
     attach_gain(model)
@@ -385,14 +419,18 @@ def main(argv: list[str] | None = None) -> int:
         opt.zero_grad()
         for sample in random_windows(train, rng, args.batch, t, stride):
             views = np.concatenate((sample.targets, rng.choice(sample.context, 1)))
-            out, gaussians = predict(model, sample, views, args.time_policy)
+            out, gaussians = predict(model, sample, views, args.time_policy, features_kind)
             terms = loss_terms(out, gaussians, sample, views, args.dynamic_weight, rng)
+            if features_kind is not None:
+                target = lifting.targets(model, sample, views, features_kind)
+                terms["feature"] = lifting.loss(model, out["features"], target, features_kind)
             loss = (
                 terms["mse"]
                 + args.ssim_weight * (1 - terms["ssim"])
                 + args.depth_weight * terms["depth"]
                 + args.alpha_weight * terms["alpha"]
                 + args.surface_weight * (terms["chamfer"] + terms["colour"])
+                + (args.feature_weight * terms["feature"] if features_kind is not None else 0.0)
             )
             (loss / args.batch).backward()
             for k, v in terms.items():
@@ -416,7 +454,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     torch.save({"state_dict": official_state_dict(model)}, args.run / "c4g-tiny.ckpt")
     (args.run / "recipe.json").write_text(json.dumps(recipe, indent=2) + "\n")
-    (args.run / "config.json").write_text(json.dumps(TINY.to_dict(), indent=2) + "\n")
+    (args.run / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2) + "\n")
     print(f"wrote {args.run / 'c4g-tiny.ckpt'}")
     return 0
 

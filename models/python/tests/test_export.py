@@ -90,8 +90,10 @@ def test_dynamic_frame_and_target_counts(package, official_small_dir, frames, ta
     feed = {"features": features.numpy(), "context_times": ctx, "target_times": tgt}
     (got,) = session(package / "decoder.onnx").run(None, feed)
     np.testing.assert_allclose(got, expected, atol=1e-4, rtol=1e-3)
-    (got_lifted,) = session(package / "feature_decoder.onnx").run(None, {**feed, "context_feature_maps": maps})
+    got_both, got_lifted = session(package / "feature_decoder.onnx").run(["gaussians", "gaussian_features"], {**feed, "context_feature_maps": maps})
     np.testing.assert_allclose(got_lifted, expected_features, atol=1e-4, rtol=1e-3)
+    # The joint decoder's Gaussians are the Gaussian decoder's: the feature stream never feeds back.
+    np.testing.assert_allclose(got_both, expected, atol=1e-4, rtol=1e-3)
 
 
 def test_package_files_are_readable_by_every_user(tmp_path):

@@ -1,0 +1,91 @@
+"""What feature lifting trains on: the 2D feature maps the feature stream takes at the context
+frames, the same kind of map at the target views, and the rendered per-Gaussian features compared
+with them (C3G's recipe: render the features like colours at the target camera, L1 against the 2D
+features of the target view).
+
+Two kinds (`FEATURE_KINDS` of the export tool, declared in the package):
+- `encoder`: the model's own encoder patch features, F = the feature width C. Compared at the patch
+  level: the rendered feature image (full resolution, every Gaussian's footprint exact) is averaged
+  over each patch and held to the target frame's encoder features for that patch. The encoder says
+  nothing finer than a patch, so upsampling its features to pixels would only invent a target.
+  Both maps are taken without gradient: they are the data, as any 2D feature map would be, and an
+  encoder trained through them could make them trivially easy to lift.
+- `object-id`: object identity from the synthetic data (`synthetic.render_object_ids`), F =
+  `synthetic.OBJECT_IDS`. Context maps: the fraction of each patch's pixels of each id (its one-hot
+  averaged over the patch); targets: each pixel's one-hot id at full resolution.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .dataset import Sample
+from .model import C4G
+from .render_torch import render
+from .synthetic import OBJECT_IDS
+
+KINDS = ("encoder", "object-id")
+
+
+def feature_width(kind: str, encoder_width: int) -> int:
+    """The feature stream's width F for a kind."""
+    if kind == "encoder":
+        return encoder_width
+    if kind == "object-id":
+        return OBJECT_IDS
+    raise ValueError(f"unknown feature kind {kind!r} (known: {', '.join(KINDS)})")
+
+
+def _one_hot_ids(sample: Sample, frames: np.ndarray) -> torch.Tensor:
+    if sample.object_ids is None:
+        raise ValueError("object-id lifting needs a split made with object ids (python -m c4g.dataset --object-ids)")
+    return F.one_hot(torch.from_numpy(sample.object_ids[frames]).long(), OBJECT_IDS).float()  # [V, H, W, K]
+
+
+def _patch_mean(images: torch.Tensor, patch: int) -> torch.Tensor:
+    """[V, H, W, F] → [V, H/patch * W/patch, F]: each patch's mean, patches in row-major order (the
+    encoder's token order)."""
+    pooled = F.avg_pool2d(images.permute(0, 3, 1, 2), patch)
+    return pooled.flatten(2).transpose(1, 2)
+
+
+@torch.no_grad()
+def context_maps(model: C4G, sample: Sample, features: torch.Tensor, kind: str) -> torch.Tensor:
+    """The feature stream's input at the context frames, [T, P, F]; `features` are the context
+    frames' encoder features [T, P, C]."""
+    if kind == "encoder":
+        return features.detach()
+    return _patch_mean(_one_hot_ids(sample, sample.context), model.cfg.patch)
+
+
+@torch.no_grad()
+def targets(model: C4G, sample: Sample, views: np.ndarray, kind: str) -> torch.Tensor:
+    """What the rendered features at `views` are held to: [V, P, C] encoder features of those frames,
+    or [V, H, W, K] one-hot object ids."""
+    if kind == "encoder":
+        frames = torch.from_numpy(sample.frames[views]).permute(0, 3, 1, 2) * 2 - 1
+        return model.encode(frames)
+    return _one_hot_ids(sample, views)
+
+
+def render_features(
+    gaussians: tuple, lifted: torch.Tensor, intrinsics: tuple, world_to_camera: torch.Tensor, size: int
+) -> torch.Tensor:
+    """Per-Gaussian features [V, N, F] of the sets `gaussians` (render_batch's arguments, [V, N, ·])
+    composited like colours at each view's camera with the differentiable dense rasterizer:
+    [V, H, W, F]."""
+    means, scales, rotations, opacities, colours = gaussians
+    images = [
+        render(means[v], scales[v], rotations[v], opacities[v], colours[v], intrinsics, world_to_camera[v], size, size, features=lifted[v])["features"]
+        for v in range(len(lifted))
+    ]
+    return torch.stack(images)
+
+
+def loss(model: C4G, rendered: torch.Tensor, target: torch.Tensor, kind: str) -> torch.Tensor:
+    """Mean L1 between the rendered feature images [V, H, W, F] and the targets (`targets`)."""
+    if kind == "encoder":
+        rendered = _patch_mean(rendered, model.cfg.patch)
+    return (rendered - target).abs().mean()
