@@ -57,4 +57,4 @@ pub use render::{
 };
 pub use sse::{SseDecoder, SseEvent};
 pub use stream::{Compact, GaussianStream, Spacing, StreamOptions};
-pub use upload::{UploadOptions, UploadSource, content_type_for};
+pub use upload::{UploadCameras, UploadOptions, UploadSource, content_type_for};

@@ -40,6 +40,60 @@ pub struct UploadOptions {
     pub start: Option<f64>,
     /// Only frames at or before this time (seconds).
     pub end: Option<f64>,
+    /// One camera per frame, stored with the clip in the model's frame (`docs/api.md`, "Given
+    /// cameras"). With cameras a file goes as a multipart `file` part: camera files are too
+    /// large for a query string.
+    pub cameras: Option<UploadCameras>,
+}
+
+/// Per-frame cameras in one of the forms the server reads, as file contents.
+#[derive(Debug, Clone, PartialEq)]
+pub enum UploadCameras {
+    /// A JSON list, one object per frame (`world_to_camera` or `camera_to_world`, `intrinsics`).
+    Json(String),
+    /// COLMAP's text model, its images matched to frames by name order or by `names`.
+    Colmap {
+        /// `cameras.txt`.
+        cameras: String,
+        /// `images.txt`.
+        images: String,
+        /// Image names in frame order (empty: sorted by name).
+        names: Vec<String>,
+    },
+    /// nerfstudio's `transforms.json`, its frames matched by `file_path` order or by `names`.
+    Transforms {
+        /// The file.
+        json: String,
+        /// File paths in frame order (empty: sorted).
+        names: Vec<String>,
+    },
+}
+
+impl UploadCameras {
+    /// The multipart fields that carry them.
+    fn pairs(&self) -> Vec<(&'static str, String)> {
+        let names =
+            |names: &[String]| (!names.is_empty()).then(|| ("camera_names", names.join("\n")));
+        match self {
+            Self::Json(json) => vec![("cameras", json.clone())],
+            Self::Colmap {
+                cameras,
+                images,
+                names: n,
+            } => [
+                Some(("colmap_cameras", cameras.clone())),
+                Some(("colmap_images", images.clone())),
+                names(n),
+            ]
+            .into_iter()
+            .flatten()
+            .collect(),
+            Self::Transforms { json, names: n } => [Some(("transforms", json.clone())), names(n)]
+                .into_iter()
+                .flatten()
+                .collect(),
+        }
+    }
 }
 
 impl UploadOptions {
@@ -64,6 +118,9 @@ impl UploadOptions {
         }
         if let Some(end) = self.end {
             pairs.push(("end", end.to_string()));
+        }
+        if let Some(cameras) = &self.cameras {
+            pairs.extend(cameras.pairs());
         }
         pairs
     }
@@ -142,6 +199,16 @@ impl Client {
         let progress: ProgressFn = Arc::new(progress);
         let mut url = self.url(&["v1", "clips"]);
         let request = match source.into() {
+            UploadSource::Bytes { data, content_type } if options.cameras.is_some() => {
+                let total = data.len() as u64;
+                let body = Body::wrap_stream(bytes_chunks(data, Progress::new(total, progress)));
+                let part = Part::stream_with_length(body, total).mime_str(&content_type)?;
+                let form = options
+                    .pairs()
+                    .into_iter()
+                    .fold(Form::new(), |form, (name, value)| form.text(name, value));
+                self.http().post(url).multipart(form.part("file", part))
+            }
             UploadSource::Bytes { data, content_type } => {
                 add_query(&mut url, options);
                 let total = data.len() as u64;
@@ -161,6 +228,9 @@ impl Client {
                 } else if image_type_for(&path).is_some() {
                     let frames = [(path, metadata.len())];
                     let form = frames_form(&frames, options, progress).await?;
+                    self.http().post(url).multipart(form)
+                } else if options.cameras.is_some() {
+                    let form = file_form(&path, metadata.len(), options, progress).await?;
                     self.http().post(url).multipart(form)
                 } else {
                     add_query(&mut url, options);
@@ -246,6 +316,23 @@ async fn frames_form(
     Ok(form)
 }
 
+/// A multipart form of the options as text fields, then the file as the `file` part.
+async fn file_form(
+    path: &Path,
+    len: u64,
+    options: &UploadOptions,
+    progress: ProgressFn,
+) -> Result<Form, Error> {
+    let mut form = Form::new();
+    for (name, value) in options.pairs() {
+        form = form.text(name, value);
+    }
+    let file = tokio::fs::File::open(path).await.map_err(io_error(path))?;
+    let body = Body::wrap_stream(file_chunks(file, Progress::new(len, progress)));
+    let part = Part::stream_with_length(body, len).mime_str(content_type_for(path))?;
+    Ok(form.part("file", part))
+}
+
 type ProgressFn = Arc<dyn Fn(u64, u64) + Send + Sync>;
 
 /// Bytes sent so far of one upload, shared by every stream of its body.
@@ -328,6 +415,11 @@ mod tests {
             stride: None,
             start: Some(0.5),
             end: Some(2.0),
+            cameras: Some(UploadCameras::Colmap {
+                cameras: "c".into(),
+                images: "i".into(),
+                names: vec!["b.png".into(), "a.png".into()],
+            }),
         };
         assert_eq!(
             options.pairs(),
@@ -337,6 +429,9 @@ mod tests {
                 ("max_frames", "8".to_owned()),
                 ("start", "0.5".to_owned()),
                 ("end", "2".to_owned()),
+                ("colmap_cameras", "c".to_owned()),
+                ("colmap_images", "i".to_owned()),
+                ("camera_names", "b.png\na.png".to_owned()),
             ]
         );
         assert!(UploadOptions::default().pairs().is_empty());

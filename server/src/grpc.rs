@@ -16,6 +16,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::camera::{CameraSpec, IntrinsicsSpec};
 use crate::image_formats::{ImageFormat, encode_image};
+use crate::intake::cameras::CameraInput;
 use crate::intake::{IntakeOptions, Media, MediaKind};
 use crate::keyframes::KeyframesSpec;
 use crate::quality::{Preset, PruneSpec, QualitySpec};
@@ -252,6 +253,7 @@ impl C4g for Grpc {
             stride: sampling.stride.map(|n| n as usize),
             start: sampling.start,
             end: sampling.end,
+            cameras: header.cameras.map(given_cameras).transpose()?,
         };
         let media = Media::File {
             data: data.freeze(),
@@ -508,5 +510,27 @@ impl C4g for Grpc {
                 manifest_json: crate::api::models::describe(service).to_string(),
             }],
         }))
+    }
+}
+
+/// An upload's cameras as the intake reads them.
+fn given_cameras(cameras: pb::GivenCameras) -> Result<CameraInput, ServiceError> {
+    use pb::given_cameras::Form;
+    let names = (!cameras.names.is_empty()).then_some(cameras.names);
+    match cameras.form {
+        Some(Form::Json(_)) if names.is_some() => Err(ServiceError::invalid(
+            "names match COLMAP images or transforms.json frames to frames; the JSON list is \
+             already in frame order",
+        )),
+        Some(Form::Json(json)) => Ok(CameraInput::Json(json)),
+        Some(Form::Colmap(colmap)) => Ok(CameraInput::Colmap {
+            cameras: colmap.cameras_txt,
+            images: colmap.images_txt,
+            names,
+        }),
+        Some(Form::Transforms(json)) => Ok(CameraInput::Transforms { json, names }),
+        None => Err(ServiceError::invalid(
+            "cameras needs a form: json, colmap or transforms",
+        )),
     }
 }

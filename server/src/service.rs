@@ -22,7 +22,8 @@ use crate::ServiceError;
 use crate::batching::DecodeBatcher;
 use crate::camera::CameraSpec;
 use crate::config::{Config, Limits};
-use crate::intake::{self, IntakeOptions, IntakeTools, Media};
+use crate::intake::cameras::{ClipCameras, Parsed};
+use crate::intake::{self, IntakeOptions, IntakeTools, Media, SourceInfo};
 use crate::jobs::{self, JobQueue};
 use crate::pruning::Analyses;
 use crate::quality::{self, Approximation, QualitySpec};
@@ -158,9 +159,11 @@ impl Service {
         media: Media,
         options: IntakeOptions,
     ) -> Result<(Arc<ClipRecord>, bool), ServiceError> {
+        // Cameras are read before anything else: a bad camera file costs no encode slot.
+        let cameras = options.cameras.as_ref().map(|c| c.parse()).transpose()?;
         let id = intake::clip_id(&self.model_key, &media, &options);
         self.store
-            .get_or_create(&id, || self.encode(id.clone(), media, options))
+            .get_or_create(&id, || self.encode(id.clone(), media, options, cameras))
             .await
     }
 
@@ -169,6 +172,7 @@ impl Service {
         id: String,
         media: Media,
         options: IntakeOptions,
+        cameras: Option<Parsed>,
     ) -> Result<NewClip, ServiceError> {
         let slot = self.encode_slots.clone().try_acquire_owned().map_err(|_| {
             metrics::counter!("c4g_rejected_total", "reason" => "encodes_busy").increment(1);
@@ -179,6 +183,10 @@ impl Service {
         let started = Instant::now();
         let intake = intake::read(media, &options, &self.limits, &self.tools).await?;
         metrics::histogram!("c4g_intake_duration_seconds").record(started.elapsed().as_secs_f64());
+        let sources: Vec<usize> = intake.frames.iter().map(|f| f.source_index).collect();
+        if let Some(parsed) = &cameras {
+            check_camera_count(parsed, &intake.source)?;
+        }
         let service = self.clone();
         let source = intake.source.clone();
         let frame_step = intake.frame_step;
@@ -209,6 +217,15 @@ impl Service {
         .await
         .map_err(|e| ServiceError::Internal(format!("encoding panicked: {e}")))??;
         tracing::info!(clip = %id, frames = encoding.frame_count(), "clip encoded");
+        let cameras = cameras.map(|parsed| {
+            // The encoding's order is time order; `frame_order` says which intake frame each is.
+            let given: Vec<_> = encoding
+                .frame_order()
+                .iter()
+                .map(|&k| parsed.cameras[sources[k]])
+                .collect();
+            ClipCameras::new(&given, encoding.times(), parsed.format, parsed.notes)
+        });
         Ok(NewClip {
             record: ClipRecord {
                 id,
@@ -220,6 +237,7 @@ impl Service {
                 frame_order: encoding.frame_order().to_vec(),
                 feature_shape: encoding.shape(),
                 frame_step,
+                cameras,
             },
             encoding,
             frames,
@@ -715,6 +733,20 @@ fn count_sets(exact: usize, interpolated: usize) {
             metrics::counter!("c4g_decoded_sets_total", "how" => how).increment(n as u64);
         }
     }
+}
+
+/// Given cameras come one per source frame: the frames that were read, whatever was chosen.
+fn check_camera_count(parsed: &Parsed, source: &SourceInfo) -> Result<(), ServiceError> {
+    if parsed.cameras.len() != source.frames {
+        return Err(ServiceError::invalid(format!(
+            "{} cameras for {} frames: give one camera per frame of the upload (the {} source \
+             frames that were read, in order), not only the context frames",
+            parsed.cameras.len(),
+            source.frames,
+            source.kind
+        )));
+    }
+    Ok(())
 }
 
 fn check_background(background: [f32; 3]) -> Result<(), ServiceError> {

@@ -40,6 +40,7 @@ use tokio::sync::OnceCell;
 
 use crate::ServiceError;
 use crate::faults;
+use crate::intake::cameras::ClipCameras;
 use crate::intake::{IntakeOptions, SourceInfo};
 use crate::shared_clips::{Claim, RECHECK, SHARED_MARK, SharedClips};
 
@@ -66,6 +67,10 @@ pub struct ClipRecord {
     /// [`frame_step`](Self::frame_step)). Absent in clips stored before it was recorded.
     #[serde(default)]
     pub frame_step: Option<f64>,
+    /// The context frames' given cameras in the model's frame, when the upload carried cameras.
+    /// Absent in clips uploaded without them (and in clips stored before they were recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cameras: Option<ClipCameras>,
 }
 
 impl ClipRecord {

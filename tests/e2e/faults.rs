@@ -266,6 +266,7 @@ fn upload_header(times: Vec<f64>) -> pb::UploadRequest {
             fps: None,
             timestamps: times,
             sampling: None,
+            cameras: None,
         })),
     }
 }

@@ -6,7 +6,8 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
-use c4g_client::UploadOptions;
+use anyhow::Context as _;
+use c4g_client::{UploadCameras, UploadOptions};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::{Context, clip_summary, emit, emit_json};
@@ -34,9 +35,52 @@ pub struct Args {
     /// Only frames at or before this time (seconds).
     #[arg(long)]
     end: Option<f64>,
+    /// Per-frame cameras as a JSON list (one object per frame: world_to_camera or
+    /// camera_to_world, row-major, OpenCV axes; intrinsics as fractions of the image size).
+    #[arg(long, value_name = "FILE", group = "given_cameras")]
+    cameras: Option<PathBuf>,
+    /// Per-frame cameras from a COLMAP text model: a directory holding cameras.txt and
+    /// images.txt (images matched to frames by name order, or by --camera-names).
+    #[arg(long, value_name = "DIR", group = "given_cameras")]
+    colmap: Option<PathBuf>,
+    /// Per-frame cameras from nerfstudio's transforms.json (frames matched by file_path order,
+    /// or by --camera-names).
+    #[arg(long, value_name = "FILE", group = "given_cameras")]
+    transforms: Option<PathBuf>,
+    /// The COLMAP image names or transforms.json file paths of the frames, in frame order.
+    #[arg(long, value_delimiter = ',', requires = "given_cameras")]
+    camera_names: Vec<String>,
+}
+
+/// The cameras the arguments name, read from their files.
+fn cameras(args: &Args) -> anyhow::Result<Option<UploadCameras>> {
+    let read = |path: &std::path::Path| {
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))
+    };
+    let names = args.camera_names.clone();
+    Ok(match (&args.cameras, &args.colmap, &args.transforms) {
+        (Some(file), _, _) => {
+            anyhow::ensure!(
+                names.is_empty(),
+                "--camera-names is for --colmap and --transforms: a JSON list is in frame order"
+            );
+            Some(UploadCameras::Json(read(file)?))
+        }
+        (_, Some(dir), _) => Some(UploadCameras::Colmap {
+            cameras: read(&dir.join("cameras.txt"))?,
+            images: read(&dir.join("images.txt"))?,
+            names,
+        }),
+        (_, _, Some(file)) => Some(UploadCameras::Transforms {
+            json: read(file)?,
+            names,
+        }),
+        _ => None,
+    })
 }
 
 pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
+    let cameras = cameras(&args)?;
     let options = UploadOptions {
         fps: args.fps,
         timestamps: args.timestamps,
@@ -44,6 +88,7 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
         stride: args.stride,
         start: args.start,
         end: args.end,
+        cameras,
     };
     let bar = progress_bar(cx.json);
     let clip = {

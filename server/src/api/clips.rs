@@ -11,6 +11,7 @@ use http_body_util::{BodyExt, LengthLimitError, Limited};
 use serde_json::{Value, json};
 
 use super::json::{ClipId, FrameIndex, query_pairs};
+use crate::intake::cameras::{CameraInput, parse_names};
 use crate::intake::{IntakeOptions, Media, MediaKind};
 use crate::store::ClipRecord;
 use crate::{AppState, ServiceError};
@@ -29,6 +30,9 @@ pub fn clip_json(record: &ClipRecord, created: Option<bool>) -> Value {
         "feature_bytes": record.feature_bytes(),
         "created_at": record.created_at,
     });
+    if let Some(cameras) = &record.cameras {
+        value["cameras"] = json!(cameras);
+    }
     if let Some(created) = created {
         value["created"] = json!(created);
     }
@@ -151,8 +155,14 @@ fn parse_options(fields: &[(String, String)]) -> Result<IntakeOptions, ServiceEr
             .map_err(|_| ServiceError::invalid(format!("`{name}` must be a number, got {value:?}")))
     }
     let mut options = IntakeOptions::default();
+    let mut cameras = CameraFields::default();
     for (name, value) in fields {
         match name.as_str() {
+            "cameras" => cameras.json = Some(value.clone()),
+            "colmap_cameras" => cameras.colmap_cameras = Some(value.clone()),
+            "colmap_images" => cameras.colmap_images = Some(value.clone()),
+            "transforms" => cameras.transforms = Some(value.clone()),
+            "camera_names" => cameras.names = Some(parse_names(value)?),
             "fps" => options.fps = Some(number(name, value)?),
             "max_frames" => options.max_frames = Some(number(name, value)?),
             "stride" => options.stride = Some(number(name, value)?),
@@ -162,12 +172,69 @@ fn parse_options(fields: &[(String, String)]) -> Result<IntakeOptions, ServiceEr
             other => {
                 return Err(ServiceError::invalid(format!(
                     "unknown upload option `{other}`: use fps, timestamps, max_frames, stride, \
-                     start or end"
+                     start, end, or cameras (cameras, colmap_cameras with colmap_images, or \
+                     transforms; camera_names)"
                 )));
             }
         }
     }
+    options.cameras = cameras.input()?;
     Ok(options)
+}
+
+/// The upload fields that carry cameras, before they are known to make one form.
+#[derive(Default)]
+struct CameraFields {
+    json: Option<String>,
+    colmap_cameras: Option<String>,
+    colmap_images: Option<String>,
+    transforms: Option<String>,
+    names: Option<Vec<String>>,
+}
+
+impl CameraFields {
+    fn input(self) -> Result<Option<CameraInput>, ServiceError> {
+        let Self {
+            json,
+            colmap_cameras,
+            colmap_images,
+            transforms,
+            names,
+        } = self;
+        let forms = [
+            json.is_some(),
+            colmap_cameras.is_some() || colmap_images.is_some(),
+            transforms.is_some(),
+        ];
+        if forms.iter().filter(|f| **f).count() > 1 {
+            return Err(ServiceError::invalid(
+                "give cameras in one form: `cameras` (JSON), `colmap_cameras` with \
+                 `colmap_images`, or `transforms`",
+            ));
+        }
+        match (json, colmap_cameras, colmap_images, transforms) {
+            (Some(_), ..) if names.is_some() => Err(ServiceError::invalid(
+                "camera_names matches COLMAP images or transforms.json frames to frames; the \
+                 JSON list is already in frame order",
+            )),
+            (Some(json), ..) => Ok(Some(CameraInput::Json(json))),
+            (_, Some(cameras), Some(images), _) => Ok(Some(CameraInput::Colmap {
+                cameras,
+                images,
+                names,
+            })),
+            (_, Some(_), None, _) | (_, None, Some(_), _) => Err(ServiceError::invalid(
+                "COLMAP cameras need both `colmap_cameras` (cameras.txt) and `colmap_images` \
+                 (images.txt)",
+            )),
+            (_, _, _, Some(json)) => Ok(Some(CameraInput::Transforms { json, names })),
+            (None, None, None, None) if names.is_some() => Err(ServiceError::invalid(
+                "camera_names without cameras: add `colmap_cameras` and `colmap_images`, or \
+                 `transforms`",
+            )),
+            _ => Ok(None),
+        }
+    }
 }
 
 /// `timestamps`: comma-separated decimal numbers (`0,0.1,0.25`, spaces allowed around the

@@ -77,6 +77,7 @@ pub fn read(
         .iter()
         .map(|&i| {
             Ok(TimedFrame {
+                source_index: i,
                 time: times[i],
                 image: decode(&files[i], limits).map_err(|e| {
                     ServiceError::UnreadableMedia(format!("frame {i} cannot be decoded: {e}"))

@@ -11,7 +11,9 @@
 //! | `video` | FFmpeg / ffprobe as subprocesses with time limits |
 //! | `images` | zip and tar archives, image frames, decompression limits |
 //! | `sampling` | which frames become context frames |
+//! | [`cameras`] | given cameras (a JSON list, COLMAP text, nerfstudio's `transforms.json`) |
 
+pub mod cameras;
 pub(crate) mod images;
 mod sampling;
 pub(crate) mod sniff;
@@ -89,6 +91,10 @@ pub struct IntakeOptions {
     pub start: Option<f64>,
     /// Window end, seconds.
     pub end: Option<f64>,
+    /// One camera per source frame, as the client sent them. Not serialised with the options:
+    /// the clip stores them read ([`cameras::ClipCameras`]); [`clip_id`] hashes them.
+    #[serde(skip)]
+    pub cameras: Option<cameras::CameraInput>,
 }
 
 /// Frame rate given to image frames that have neither timestamps nor an fps.
@@ -121,6 +127,8 @@ pub struct SourceInfo {
 /// A context frame: its media time and its pixels.
 #[derive(Debug, Clone)]
 pub struct TimedFrame {
+    /// Its index among the source's frames (which given camera is its).
+    pub source_index: usize,
     /// Seconds from the source's first frame.
     pub time: f64,
     /// The frame at source resolution.
@@ -193,6 +201,10 @@ pub fn clip_id(model_identity: &str, media: &Media, options: &IntakeOptions) -> 
     // Serialising a struct of options is deterministic (fields in declaration order).
     hasher.update(serde_json::to_vec(options).unwrap_or_default());
     hasher.update(b"\0");
+    // Absent cameras add nothing, so clips uploaded before cameras existed keep their ids.
+    if let Some(cameras) = &options.cameras {
+        cameras.hash_into(&mut hasher);
+    }
     media.hash_into(&mut hasher);
     hex::encode(&hasher.finalize()[..12])
 }

@@ -102,6 +102,7 @@ pub async fn read(
             .iter()
             .zip(images)
             .map(|(&i, image)| TimedFrame {
+                source_index: i,
                 time: times[i],
                 image,
             })

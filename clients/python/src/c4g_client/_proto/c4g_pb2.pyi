@@ -67,18 +67,40 @@ class UploadRequest(_message.Message):
     def __init__(self, header: _Optional[_Union[UploadHeader, _Mapping]] = ..., chunk: _Optional[bytes] = ...) -> None: ...
 
 class UploadHeader(_message.Message):
-    __slots__ = ("kind", "filename", "fps", "timestamps", "sampling")
+    __slots__ = ("kind", "filename", "fps", "timestamps", "sampling", "cameras")
     KIND_FIELD_NUMBER: _ClassVar[int]
     FILENAME_FIELD_NUMBER: _ClassVar[int]
     FPS_FIELD_NUMBER: _ClassVar[int]
     TIMESTAMPS_FIELD_NUMBER: _ClassVar[int]
     SAMPLING_FIELD_NUMBER: _ClassVar[int]
+    CAMERAS_FIELD_NUMBER: _ClassVar[int]
     kind: MediaKind
     filename: str
     fps: float
     timestamps: _containers.RepeatedScalarFieldContainer[float]
     sampling: ClipSampling
-    def __init__(self, kind: _Optional[_Union[MediaKind, str]] = ..., filename: _Optional[str] = ..., fps: _Optional[float] = ..., timestamps: _Optional[_Iterable[float]] = ..., sampling: _Optional[_Union[ClipSampling, _Mapping]] = ...) -> None: ...
+    cameras: GivenCameras
+    def __init__(self, kind: _Optional[_Union[MediaKind, str]] = ..., filename: _Optional[str] = ..., fps: _Optional[float] = ..., timestamps: _Optional[_Iterable[float]] = ..., sampling: _Optional[_Union[ClipSampling, _Mapping]] = ..., cameras: _Optional[_Union[GivenCameras, _Mapping]] = ...) -> None: ...
+
+class GivenCameras(_message.Message):
+    __slots__ = ("json", "colmap", "transforms", "names")
+    JSON_FIELD_NUMBER: _ClassVar[int]
+    COLMAP_FIELD_NUMBER: _ClassVar[int]
+    TRANSFORMS_FIELD_NUMBER: _ClassVar[int]
+    NAMES_FIELD_NUMBER: _ClassVar[int]
+    json: str
+    colmap: ColmapText
+    transforms: str
+    names: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, json: _Optional[str] = ..., colmap: _Optional[_Union[ColmapText, _Mapping]] = ..., transforms: _Optional[str] = ..., names: _Optional[_Iterable[str]] = ...) -> None: ...
+
+class ColmapText(_message.Message):
+    __slots__ = ("cameras_txt", "images_txt")
+    CAMERAS_TXT_FIELD_NUMBER: _ClassVar[int]
+    IMAGES_TXT_FIELD_NUMBER: _ClassVar[int]
+    cameras_txt: str
+    images_txt: str
+    def __init__(self, cameras_txt: _Optional[str] = ..., images_txt: _Optional[str] = ...) -> None: ...
 
 class ClipSampling(_message.Message):
     __slots__ = ("max_frames", "stride", "start", "end")

@@ -1,0 +1,191 @@
+//! Given cameras: per-frame cameras a client uploads with its clip, in one of three forms, read
+//! into one list and mapped into the model's frame.
+//!
+//! C4G predicts no cameras (`../shared/docs/C4G_MODEL.md`, "Cameras and time interpolation in
+//! the public code"): its public code takes poses from an external estimator. A client that has
+//! them (COLMAP, nerfstudio, its own tracker) sends them with the upload, one per source frame;
+//! the clip keeps those of its context frames, so renders can follow the input path.
+//!
+//! | module | holds |
+//! |---|---|
+//! | `pose` | [`GivenCamera`]: one frame's pose and intrinsics, checked (rigid, finite, bounded) |
+//! | `json` | the JSON list (`world_to_camera` or `camera_to_world`, normalised intrinsics) |
+//! | `colmap` | COLMAP's text model: `cameras.txt` and `images.txt` |
+//! | `nerfstudio` | nerfstudio's `transforms.json` (OpenGL camera-to-world, pixel intrinsics) |
+//! | `model_frame` | the context frames' cameras in the model's frame ([`ClipCameras`]), as stored |
+
+mod colmap;
+mod json;
+mod model_frame;
+mod nerfstudio;
+mod pose;
+
+use sha2::{Digest, Sha256};
+
+use crate::ServiceError;
+pub use model_frame::{ClipCameras, ContextCamera};
+pub use pose::{GivenCamera, Intrinsics};
+
+/// Cameras as the client sent them: the text of one of the three forms.
+#[derive(Debug, Clone, PartialEq)]
+pub enum CameraInput {
+    /// A JSON list, one object per frame.
+    Json(String),
+    /// COLMAP's text model.
+    Colmap {
+        /// `cameras.txt`.
+        cameras: String,
+        /// `images.txt`.
+        images: String,
+        /// The images in frame order, by name; without it, images sorted by name.
+        names: Option<Vec<String>>,
+    },
+    /// nerfstudio's `transforms.json`.
+    Transforms {
+        /// The file.
+        json: String,
+        /// The frames in frame order, by `file_path`; without it, frames sorted by `file_path`.
+        names: Option<Vec<String>>,
+    },
+}
+
+/// Cameras read from a [`CameraInput`]: one per source frame, and what was ignored.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Parsed {
+    /// One per source frame, in frame order.
+    pub cameras: Vec<GivenCamera>,
+    /// What the client should know: distortion that was ignored, say.
+    pub notes: Vec<String>,
+    /// `json`, `colmap` or `transforms`.
+    pub format: &'static str,
+}
+
+/// Most cameras an upload may carry: as many as the source frames a server takes at most would
+/// be the natural bound, but parsing happens before the frames are read, so a fixed bound keeps
+/// a hostile camera file from costing more than the frames themselves.
+pub const MAX_CAMERAS: usize = 100_000;
+
+impl CameraInput {
+    /// Reads and checks every camera.
+    pub fn parse(&self) -> Result<Parsed, ServiceError> {
+        let (cameras, notes, format) = match self {
+            Self::Json(text) => (json::parse(text)?, Vec::new(), "json"),
+            Self::Colmap {
+                cameras,
+                images,
+                names,
+            } => {
+                let (c, n) = colmap::parse(cameras, images, names.as_deref())?;
+                (c, n, "colmap")
+            }
+            Self::Transforms { json, names } => {
+                let (c, n) = nerfstudio::parse(json, names.as_deref())?;
+                (c, n, "transforms")
+            }
+        };
+        if cameras.is_empty() {
+            return Err(ServiceError::invalid(
+                "the cameras list no camera: give one per frame",
+            ));
+        }
+        if cameras.len() > MAX_CAMERAS {
+            return Err(ServiceError::invalid(format!(
+                "{} cameras; at most {MAX_CAMERAS} are accepted",
+                cameras.len()
+            )));
+        }
+        Ok(Parsed {
+            cameras,
+            notes,
+            format,
+        })
+    }
+
+    /// Feeds the cameras into a clip's content address: other cameras make another clip.
+    pub fn hash_into(&self, hasher: &mut Sha256) {
+        let mut part = |tag: &[u8], text: &str| {
+            hasher.update(tag);
+            hasher.update((text.len() as u64).to_le_bytes());
+            hasher.update(text.as_bytes());
+        };
+        match self {
+            Self::Json(text) => part(b"cameras-json\0", text),
+            Self::Colmap {
+                cameras,
+                images,
+                names,
+            } => {
+                part(b"cameras-colmap\0", cameras);
+                part(b"images\0", images);
+                part(
+                    b"names\0",
+                    &names.as_ref().map(|n| n.join("\n")).unwrap_or_default(),
+                );
+            }
+            Self::Transforms { json, names } => {
+                part(b"cameras-transforms\0", json);
+                part(
+                    b"names\0",
+                    &names.as_ref().map(|n| n.join("\n")).unwrap_or_default(),
+                );
+            }
+        }
+    }
+}
+
+/// A file-name list (`camera_names`): one name per line, or comma-separated; blanks trimmed.
+pub fn parse_names(text: &str) -> Result<Vec<String>, ServiceError> {
+    let separator = if text.contains('\n') { '\n' } else { ',' };
+    let names: Vec<String> = text
+        .split(separator)
+        .map(|n| n.trim().to_owned())
+        .filter(|n| !n.is_empty())
+        .collect();
+    if names.is_empty() {
+        return Err(ServiceError::invalid(
+            "camera_names lists no name: give the image names in frame order",
+        ));
+    }
+    Ok(names)
+}
+
+/// `names` (the frame order) as indices into `available`, each name found exactly once; without
+/// `names`, `available` sorted by name. `what` names the file for messages.
+fn frame_order(
+    available: &[&str],
+    names: Option<&[String]>,
+    what: &str,
+) -> Result<Vec<usize>, ServiceError> {
+    match names {
+        None => {
+            let mut order: Vec<usize> = (0..available.len()).collect();
+            order.sort_by(|&a, &b| available[a].cmp(available[b]));
+            if let Some(w) = order
+                .windows(2)
+                .find(|w| available[w[0]] == available[w[1]])
+            {
+                return Err(ServiceError::invalid(format!(
+                    "{what} names the image {:?} twice: frames are matched to images by name",
+                    available[w[0]]
+                )));
+            }
+            Ok(order)
+        }
+        Some(names) => names
+            .iter()
+            .enumerate()
+            .map(|(frame, name)| {
+                available.iter().position(|a| a == name).ok_or_else(|| {
+                    ServiceError::invalid(format!(
+                        "camera_names[{frame}] is {name:?}, which {what} does not have \
+                             (it has {} images)",
+                        available.len()
+                    ))
+                })
+            })
+            .collect(),
+    }
+}
+
+#[cfg(test)]
+mod tests;
