@@ -1,5 +1,6 @@
 //! Cameras as clients state them: a row-major world-to-camera matrix and intrinsics as
-//! fractions of the image size, turned into the renderer's [`Camera`] at a request's image size.
+//! fractions of the image size, turned into the renderer's [`Camera`] at a request's image size;
+//! or the input camera (`input`), resolved against the clip's given cameras at a frame's time.
 //! REST bodies and gRPC messages both arrive here.
 
 use c4g_renderer::{Camera, NormalizedIntrinsics};
@@ -8,6 +9,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use crate::ServiceError;
+use crate::intake::cameras::{ClipCameras, input_camera};
 
 /// Largest coordinate, distance or angle a camera or trajectory preset may state: far beyond
 /// any scene C4G reconstructs (its scenes are a few units across), small enough that every
@@ -29,6 +31,24 @@ pub struct CameraSpec {
     pub world_to_camera: Option<Vec<f32>>,
     /// Normalised intrinsics.
     pub intrinsics: Option<IntrinsicsSpec>,
+    /// The input camera instead of a stated one (see [`InputSpec`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub input: Option<InputSpec>,
+}
+
+/// "The input camera at time t": the clip's given cameras interpolated
+/// ([`crate::intake::cameras::input_camera`]; the identity without given cameras). `{}` follows
+/// the time each frame renders at; `at` fixes the time; `start` and `end` sweep the input path
+/// evenly over a path's frames whatever times they render (the same path at a new time).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InputSpec {
+    /// The input camera at this time, seconds.
+    pub at: Option<f64>,
+    /// A path's first frame takes the input camera at this time…
+    pub start: Option<f64>,
+    /// …and its last at this one.
+    pub end: Option<f64>,
 }
 
 /// Intrinsics as fractions of the image size.
@@ -52,8 +72,78 @@ fn half() -> f32 {
 }
 
 impl CameraSpec {
-    /// The camera at `width` × `height`.
+    /// True when the camera depends on the frame (the input camera without a fixed `at`).
+    pub fn follows_frames(&self) -> bool {
+        self.input.is_some_and(|i| i.at.is_none())
+    }
+
+    /// True when it sweeps the input path over a path's frames.
+    pub fn sweeps(&self) -> bool {
+        self.input
+            .is_some_and(|i| i.start.is_some() || i.end.is_some())
+    }
+
+    /// The camera stated outright: the input camera, when asked for, of the clip whose given
+    /// cameras are `cameras`, for the frame rendering at `t`, `fraction` (0..=1) of the way
+    /// along its path (`None` for a single view).
+    pub fn resolve(
+        &self,
+        cameras: Option<&ClipCameras>,
+        t: f64,
+        fraction: Option<f64>,
+    ) -> Result<CameraSpec, ServiceError> {
+        let Some(input) = self.input else {
+            return Ok(self.clone());
+        };
+        if self.world_to_camera.is_some() || self.intrinsics.is_some() {
+            return Err(ServiceError::invalid(
+                "a camera is either stated (world_to_camera, intrinsics) or the input camera \
+                 (input), not both",
+            ));
+        }
+        let time = match (input.at, input.start, input.end, fraction) {
+            (Some(at), None, None, _) => at,
+            (None, None, None, _) => t,
+            (None, Some(start), Some(end), Some(f)) => start + (end - start) * f,
+            (None, Some(_), Some(_), None) => {
+                return Err(ServiceError::invalid(
+                    "input start and end sweep the input path over a trajectory's frames; a \
+                     single view takes input at (or {} for the view's own time)",
+                ));
+            }
+            _ => {
+                return Err(ServiceError::invalid(
+                    "input takes `at` (a time, seconds), or `start` and `end` together (a sweep \
+                     over the frames), or nothing (each frame's own time)",
+                ));
+            }
+        };
+        if !time.is_finite() {
+            return Err(ServiceError::invalid(format!(
+                "the input camera's time must be finite, got {time}"
+            )));
+        }
+        let camera = input_camera(cameras, time);
+        Ok(CameraSpec {
+            world_to_camera: Some(camera.world_to_camera.iter().map(|v| *v as f32).collect()),
+            intrinsics: Some(IntrinsicsSpec {
+                fx: camera.intrinsics.fx as f32,
+                fy: camera.intrinsics.fy as f32,
+                cx: camera.intrinsics.cx as f32,
+                cy: camera.intrinsics.cy as f32,
+            }),
+            input: None,
+        })
+    }
+
+    /// The camera at `width` × `height` (an input camera must be [`resolve`](Self::resolve)d
+    /// first).
     pub fn camera(&self, width: u32, height: u32) -> Result<Camera, ServiceError> {
+        if self.input.is_some() {
+            return Err(ServiceError::Internal(
+                "an input camera reached rendering unresolved".into(),
+            ));
+        }
         let pose = match &self.world_to_camera {
             None => Affine3A::IDENTITY,
             Some(m) if m.len() == 16 => {
@@ -189,7 +279,8 @@ mod tests {
         assert!(
             CameraSpec {
                 world_to_camera: Some(pose.clone()),
-                intrinsics: None
+                intrinsics: None,
+                input: None,
             }
             .camera(32, 32)
             .is_ok()
@@ -198,6 +289,7 @@ mod tests {
         let message = refusal(CameraSpec {
             world_to_camera: Some(pose),
             intrinsics: None,
+            input: None,
         });
         assert!(message.contains("world_to_camera[3]"), "{message}");
         let intrinsics = |fx, cx| IntrinsicsSpec {
@@ -210,6 +302,7 @@ mod tests {
             let message = refusal(CameraSpec {
                 world_to_camera: None,
                 intrinsics: Some(intrinsics(fx, cx)),
+                input: None,
             });
             assert!(message.contains(&format!("intrinsics {name}")), "{message}");
         }

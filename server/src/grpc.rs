@@ -14,7 +14,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::camera::{CameraSpec, IntrinsicsSpec};
+use crate::camera::{CameraSpec, InputSpec, IntrinsicsSpec};
 use crate::image_formats::{ImageFormat, encode_image};
 use crate::intake::cameras::CameraInput;
 use crate::intake::{IntakeOptions, Media, MediaKind};
@@ -105,6 +105,11 @@ fn camera_spec(camera: Option<pb::Camera>) -> CameraSpec {
             fy: i.fy,
             cx: i.cx,
             cy: i.cy,
+        }),
+        input: camera.input.map(|i| InputSpec {
+            at: i.at,
+            start: i.start,
+            end: i.end,
         }),
     }
 }

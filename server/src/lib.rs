@@ -11,7 +11,7 @@
 //! | `batching` | exact decodes of one clip from concurrent requests gathered into shared decoder runs |
 //! | [`jobs`] | refinement jobs: durable records, the queue, worker leases; on disk or in PostgreSQL |
 //! | `refine` | refinement requests, and the video a worker gets |
-//! | `camera` | cameras as clients state them |
+//! | `camera` | cameras as clients state them, or the input camera at a time |
 //! | `keyframes` | keyframed decoding as clients ask for it, checked against the limits |
 //! | `quality` | the speed/accuracy presets (exact, balanced, fast) and pruning as clients ask for it |
 //! | `pruning` | which Gaussians a pruned request keeps: each clip's scene analysis, cached |

@@ -506,7 +506,10 @@ impl Service {
         let record = self.store.get_or_fetch(id).await?;
         self.check_times(&record, &[view.t])?;
         let (w, h) = self.image_size(view.width, view.height)?;
-        let camera = view.camera.camera(w, h)?;
+        let camera = view
+            .camera
+            .resolve(record.cameras.as_ref(), view.t, None)?
+            .camera(w, h)?;
         check_background(view.background)?;
         let approximation = self.approximation(&record, &quality, &[view.t])?;
         let encoding = self.store.encoding(id).await?;
@@ -554,7 +557,7 @@ impl Service {
     ) -> Result<Vec<(f64, Camera)>, ServiceError> {
         let (w, h) = self.image_size(path.width, path.height)?;
         check_background(path.background)?;
-        let cameras = match (&path.preset, path.cameras.is_empty()) {
+        let n = match (&path.preset, path.cameras.is_empty()) {
             (Some(_), false) => {
                 return Err(ServiceError::invalid(
                     "give a trajectory preset or explicit cameras, not both",
@@ -566,12 +569,9 @@ impl Service {
                         "with explicit cameras the frame count is the number of cameras",
                     ));
                 }
-                path.cameras
-                    .iter()
-                    .map(|c| c.camera(w, h))
-                    .collect::<Result<Vec<_>, _>>()?
+                path.cameras.len()
             }
-            (preset, true) => {
+            (_, true) => {
                 let frames = path.frames.unwrap_or(DEFAULT_PATH_FRAMES);
                 if frames == 0 || frames > self.limits.max_times {
                     return Err(ServiceError::invalid(format!(
@@ -579,25 +579,63 @@ impl Service {
                         self.limits.max_times
                     )));
                 }
-                let reference = path.camera.camera(w, h)?;
-                match preset {
-                    Some(preset) => preset.cameras(&reference, frames)?,
-                    None => vec![reference; frames],
-                }
+                frames
             }
         };
         let (first, last) = record.span();
         let (start, end) = (path.start.unwrap_or(first), path.end.unwrap_or(last));
-        let n = cameras.len();
+        self.check_times(record, &[start, end])?;
+        let fraction = |i: usize| {
+            if n == 1 {
+                0.0
+            } else {
+                i as f64 / (n - 1) as f64
+            }
+        };
         let times: Vec<f64> = (0..n)
             .map(|i| match n {
                 1 => start,
                 // The last frame is at `end` exactly: rounding must not step outside the span.
                 _ if i == n - 1 => end,
-                _ => (start + (end - start) * i as f64 / (n - 1) as f64).min(end),
+                _ => (start + (end - start) * fraction(i)).min(end),
             })
             .collect();
-        self.check_times(record, &[start, end])?;
+        let given = record.cameras.as_ref();
+        let resolve = |spec: &CameraSpec, i: usize| {
+            spec.resolve(given, times[i], Some(fraction(i)))?
+                .camera(w, h)
+        };
+        let cameras = if path.cameras.is_empty() {
+            if path.camera.follows_frames() {
+                // Centred on the input camera at each frame's time: frame i of the preset built
+                // around that frame's reference.
+                (0..n)
+                    .map(|i| {
+                        let reference = resolve(&path.camera, i)?;
+                        match &path.preset {
+                            Some(preset) => preset
+                                .cameras(&reference, n)?
+                                .get(i)
+                                .copied()
+                                .ok_or_else(|| {
+                                    ServiceError::Internal("a preset gave too few cameras".into())
+                                }),
+                            None => Ok(reference),
+                        }
+                    })
+                    .collect::<Result<Vec<_>, ServiceError>>()?
+            } else {
+                let reference = resolve(&path.camera, 0)?;
+                match &path.preset {
+                    Some(preset) => preset.cameras(&reference, n)?,
+                    None => vec![reference; n],
+                }
+            }
+        } else {
+            (0..n)
+                .map(|i| resolve(&path.cameras[i], i))
+                .collect::<Result<Vec<_>, _>>()?
+        };
         Ok(times.into_iter().zip(cameras).collect())
     }
 

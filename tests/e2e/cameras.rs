@@ -5,6 +5,8 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
 use c4g_e2e::{Server, expect_invalid, frames_form, json_of, ort_available, synthetic_clip};
+use c4g_proto::v1 as pb;
+use c4g_proto::v1::c4g_client::C4gClient;
 use reqwest::blocking::Client;
 use serde_json::Value;
 
@@ -206,5 +208,193 @@ fn camera_counts_that_do_not_match_and_bad_camera_files_are_400() {
             .send()
             .unwrap(),
         "cameras[0]: the pose's 3x3 part is not a rotation",
+    );
+}
+
+/// Cameras of the seven frames in the model's frame already (camera 0 the identity): a turn
+/// about y and a slide along x, both growing with the frame.
+fn moving_cameras() -> String {
+    let list: Vec<String> = (0..7)
+        .map(|i| {
+            let angle = 0.04 * f64::from(i);
+            let (s, c) = angle.sin_cos();
+            let x = -0.01 * f64::from(i);
+            format!(
+                "{{\"world_to_camera\": [{c},0,{s},{x}, 0,1,0,0, {},0,{c},0, 0,0,0,1]}}",
+                -s
+            )
+        })
+        .collect();
+    format!("[{}]", list.join(","))
+}
+
+fn pixels(png: &[u8]) -> Vec<u8> {
+    image::load_from_memory(png).unwrap().to_rgb8().into_raw()
+}
+
+/// Largest difference of two renders, in 8-bit levels.
+fn worst(a: &[u8], b: &[u8]) -> u8 {
+    a.iter().zip(b).map(|(x, y)| x.abs_diff(*y)).max().unwrap()
+}
+
+/// Mean difference of two renders, in 8-bit levels.
+fn mean(a: &[u8], b: &[u8]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| f64::from(x.abs_diff(*y)))
+        .sum::<f64>()
+        / a.len() as f64
+}
+
+/// "The input camera at time t" renders what the given cameras render at the context times and
+/// something between at other times; "bullet time" (an orbit about the input camera at a fixed
+/// time) and "the same path at a new time" (the input path swept while time stands) are one
+/// request each.
+///
+/// Tolerance 1 level: a stored camera reaches the renderer through f64 → f32 either directly
+/// (the input camera) or through its JSON digits (the stated camera), which may round one ulp
+/// apart.
+#[test]
+fn renders_follow_the_input_camera_path_in_views_bullet_time_and_new_times() {
+    if !ort_available() {
+        return;
+    }
+    let server = Server::start(&[]);
+    let (frames, times) = synthetic_clip();
+    let form = frames_form(&frames, &times)
+        .text("max_frames", "4")
+        .text("cameras", moving_cameras());
+    let clip = json_of(
+        Client::new()
+            .post(server.at("/v1/clips"))
+            .multipart(form)
+            .send()
+            .unwrap(),
+    );
+    let id = clip["id"].as_str().unwrap().to_owned();
+    let stored = clip["cameras"]["frames"].as_array().unwrap().clone();
+    let render = |body: Value| {
+        let response = Client::new()
+            .post(server.at(&format!("/v1/clips/{id}/render")))
+            .json(&body)
+            .send()
+            .unwrap();
+        let status = response.status();
+        let bytes = response.bytes().unwrap();
+        assert_eq!(status, 200, "{body}: {}", String::from_utf8_lossy(&bytes));
+        pixels(&bytes)
+    };
+    let size = |mut body: Value| {
+        body["width"] = 48.into();
+        body["height"] = 48.into();
+        body
+    };
+    let stated = |k: usize, t: f64| {
+        render(size(serde_json::json!({"t": t, "camera": {
+            "world_to_camera": stored[k]["world_to_camera"],
+            "intrinsics": stored[k]["intrinsics"]}})))
+    };
+    let input = |input: Value, t: f64| {
+        render(size(
+            serde_json::json!({"t": t, "camera": {"input": input}}),
+        ))
+    };
+    for (k, camera) in stored.iter().enumerate() {
+        let t = camera["t"].as_f64().unwrap();
+        let own = input(serde_json::json!({}), t);
+        assert!(worst(&own, &stated(k, t)) <= 1, "context camera {k}");
+        assert_eq!(own, input(serde_json::json!({"at": t}), t));
+    }
+    // Between context frames 0 and 1 the input camera is neither.
+    let between = input(serde_json::json!({"at": 0.1}), 0.1);
+    for k in [0, 1] {
+        assert!(mean(&between, &stated(k, 0.1)) > 0.5, "context camera {k}");
+    }
+    // Past the span's end: the last camera.
+    assert_eq!(
+        input(serde_json::json!({"at": 9.0}), 0.6),
+        input(serde_json::json!({}), 0.6)
+    );
+
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let trajectory = |request: pb::RenderTrajectoryRequest| {
+        runtime.block_on(async {
+            let mut grpc = C4gClient::connect(server.url()).await.unwrap();
+            let mut stream = grpc.render_trajectory(request).await.unwrap().into_inner();
+            let mut frames = Vec::new();
+            while let Some(frame) = stream.message().await.unwrap() {
+                frames.push((frame.time, pixels(&frame.data)));
+            }
+            frames
+        })
+    };
+    let input_camera = |at: Option<f64>, start: Option<f64>, end: Option<f64>| pb::Camera {
+        input: Some(pb::InputCamera { at, start, end }),
+        ..Default::default()
+    };
+
+    // Bullet time: time stands at 0.2 while the camera orbits the input camera at 0.2; the
+    // middle of three frames is that camera itself.
+    let bullet = trajectory(pb::RenderTrajectoryRequest {
+        clip_id: id.clone(),
+        start: Some(0.2),
+        end: Some(0.2),
+        frames: 3,
+        preset_json: r#"{"kind": "orbit", "depth": 2.0, "angle_degrees": 40}"#.into(),
+        camera: Some(input_camera(Some(0.2), None, None)),
+        width: 48,
+        height: 48,
+        ..Default::default()
+    });
+    let at_02 = input(serde_json::json!({"at": 0.2}), 0.2);
+    assert!(bullet.iter().all(|(t, _)| *t == 0.2));
+    assert_eq!(bullet[1].1, at_02);
+    assert!(mean(&bullet[0].1, &at_02) > 0.5 && mean(&bullet[2].1, &at_02) > 0.5);
+
+    // The same path at a new time: the input path from 0 to 0.6 over four frames, time standing
+    // at 0.3. Frame k is the input camera at 0.2 k, at time 0.3.
+    let sweep = |start, end| pb::RenderTrajectoryRequest {
+        clip_id: id.clone(),
+        start: Some(start),
+        end: Some(end),
+        frames: 4,
+        camera: Some(input_camera(None, Some(0.0), Some(0.6))),
+        width: 48,
+        height: 48,
+        ..Default::default()
+    };
+    let frozen = trajectory(sweep(0.3, 0.3));
+    let replay = trajectory(sweep(0.0, 0.6));
+    assert_eq!(frozen.len(), 4);
+    for (k, ((t, image), (t_replay, replayed))) in frozen.iter().zip(&replay).enumerate() {
+        // As the server sweeps: start + (end − start) · k / (frames − 1).
+        let camera_time = 0.6 * (k as f64 / 3.0);
+        assert_eq!(*t, 0.3);
+        assert_eq!(image, &input(serde_json::json!({"at": camera_time}), 0.3));
+        // Replayed at its own times the input path is the input video's cameras.
+        assert!((t_replay - camera_time).abs() < 1e-12);
+        assert_eq!(replayed, &input(serde_json::json!({}), *t_replay));
+    }
+    // Time moved the scene: the frozen frames are not the replay's (but for the one at 0.3's
+    // neighbourhood, frames 0 and 3 are far enough).
+    assert!(mean(&frozen[0].1, &replay[0].1) > 0.1);
+    assert!(mean(&frozen[3].1, &replay[3].1) > 0.1);
+
+    // A sweep is for paths; a stated camera is not also an input camera.
+    expect_invalid(
+        Client::new()
+            .post(server.at(&format!("/v1/clips/{id}/render")))
+            .json(&serde_json::json!({"camera": {"input": {"start": 0.0, "end": 0.6}}, "t": 0.1}))
+            .send()
+            .unwrap(),
+        "\"start\" to \"end\"",
+    );
+    expect_invalid(
+        Client::new()
+            .post(server.at(&format!("/v1/clips/{id}/render")))
+            .json(&serde_json::json!({"camera": {"input": {}, "intrinsics": {"fx": 1, "fy": 1}}}))
+            .send()
+            .unwrap(),
+        "not both",
     );
 }

@@ -67,7 +67,7 @@ STATED_IN_WORDS = [
         r"POST /v1/clips",
         400,
         r"strictly increasing|timestamps for \d+ frames|no frames in the window|picks \d+ frames"
-        r"|is after its end|holds no PNG or JPEG",
+        r"|is after its end|holds no PNG or JPEG|camera|images\.txt|transforms\.json",
     ),
 ]
 

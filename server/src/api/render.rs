@@ -60,7 +60,9 @@ pub async fn render(
         keyframes: request.keyframes,
         prune: request.prune,
     };
-    let is_path = request.trajectory.is_some() || request.cameras.is_some();
+    // An input camera swept over the frames is a path of its own (the same path at new times).
+    let is_path =
+        request.trajectory.is_some() || request.cameras.is_some() || request.camera.sweeps();
     if !is_path {
         if request.frames.is_some()
             || request.fps.is_some()
@@ -69,7 +71,7 @@ pub async fn render(
             || request.keyframes.is_some()
         {
             return Err(ServiceError::invalid(
-                "frames, fps, start, end and keyframes describe a trajectory: add \"trajectory\" or \"cameras\"",
+                "frames, fps, start, end and keyframes describe a trajectory: add \"trajectory\", \"cameras\" or an input camera swept over the frames (\"camera\": {\"input\": {\"start\": …, \"end\": …}})",
             ));
         }
         let format = request.format.unwrap_or(ImageFormat::Png);
@@ -113,10 +115,8 @@ pub async fn render(
     }
     // The default frame count, within C4G_MAX_TIMES (explicit cameras are their own count).
     let frames = request.frames.or_else(|| {
-        request
-            .trajectory
-            .as_ref()
-            .map(|_| DEFAULT_PATH_FRAMES.min(service.limits.max_times))
+        (request.trajectory.is_some() || request.camera.sweeps())
+            .then(|| DEFAULT_PATH_FRAMES.min(service.limits.max_times))
     });
     let path = PathRequest {
         preset: request.trajectory,

@@ -13,8 +13,10 @@
 //! | `colmap` | COLMAP's text model: `cameras.txt` and `images.txt` |
 //! | `nerfstudio` | nerfstudio's `transforms.json` (OpenGL camera-to-world, pixel intrinsics) |
 //! | `model_frame` | the context frames' cameras in the model's frame ([`ClipCameras`]), as stored |
+//! | `input_path` | the input camera at any time: the stored cameras interpolated ([`input_camera`]) |
 
 mod colmap;
+mod input_path;
 mod json;
 mod model_frame;
 mod nerfstudio;
@@ -23,6 +25,7 @@ mod pose;
 use sha2::{Digest, Sha256};
 
 use crate::ServiceError;
+pub use input_path::{InputCamera, input_camera};
 pub use model_frame::{ClipCameras, ContextCamera};
 pub use pose::{GivenCamera, Intrinsics};
 

@@ -291,12 +291,24 @@ class Intrinsics(_message.Message):
     def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ...) -> None: ...
 
 class Camera(_message.Message):
-    __slots__ = ("world_to_camera", "intrinsics")
+    __slots__ = ("world_to_camera", "intrinsics", "input")
     WORLD_TO_CAMERA_FIELD_NUMBER: _ClassVar[int]
     INTRINSICS_FIELD_NUMBER: _ClassVar[int]
+    INPUT_FIELD_NUMBER: _ClassVar[int]
     world_to_camera: _containers.RepeatedScalarFieldContainer[float]
     intrinsics: Intrinsics
-    def __init__(self, world_to_camera: _Optional[_Iterable[float]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ...) -> None: ...
+    input: InputCamera
+    def __init__(self, world_to_camera: _Optional[_Iterable[float]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., input: _Optional[_Union[InputCamera, _Mapping]] = ...) -> None: ...
+
+class InputCamera(_message.Message):
+    __slots__ = ("at", "start", "end")
+    AT_FIELD_NUMBER: _ClassVar[int]
+    START_FIELD_NUMBER: _ClassVar[int]
+    END_FIELD_NUMBER: _ClassVar[int]
+    at: float
+    start: float
+    end: float
+    def __init__(self, at: _Optional[float] = ..., start: _Optional[float] = ..., end: _Optional[float] = ...) -> None: ...
 
 class RenderRequest(_message.Message):
     __slots__ = ("clip_id", "time", "camera", "width", "height", "format", "background", "quality", "prune")
