@@ -211,6 +211,7 @@ fn main() {
             cx: 0.5,
             cy: 0.5,
         }),
+        input: None,
     };
     let keyframes = pb::Keyframes {
         mode: Some(pb::keyframes::Mode::Adaptive(pb::AdaptiveKeyframes {
