@@ -1,10 +1,14 @@
-//! Given cameras through the running service: an upload over REST carries per-frame cameras
-//! (COLMAP text as multipart fields), the clip stores its context frames' cameras in the model's
-//! frame and `GET /v1/clips/{id}` shows them; other cameras make another clip; a camera count
-//! that does not match the frames, or a bad camera file, is a 400 that says what is wrong.
+//! Given cameras through the running service: an upload over REST (COLMAP text as multipart
+//! fields), gRPC (`UploadHeader.cameras`) or the CLI (`c4g upload --colmap`) carries per-frame
+//! cameras, the clip stores its context frames' cameras in the model's frame and
+//! `GET /v1/clips/{id}` shows them; other cameras make another clip; a camera count that does not
+//! match the frames, or a bad camera file, is a 400 that says what is wrong. Renders follow the
+//! input camera path: views, bullet time and the same path at a new time.
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
-use c4g_e2e::{Server, expect_invalid, frames_form, json_of, ort_available, synthetic_clip};
+use c4g_e2e::{
+    Server, binary, expect_invalid, frames_form, json_of, ort_available, synthetic_clip,
+};
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
 use reqwest::blocking::Client;
@@ -156,6 +160,41 @@ fn an_upload_with_colmap_cameras_stores_its_context_cameras_in_the_model_frame()
     let plain: Value = json_of(plain);
     assert_ne!(plain["id"], clip["id"]);
     assert!(plain.get("cameras").is_none());
+
+    // `c4g upload --colmap DIR` sends the same frames with the same cameras: the same clip.
+    let work = tempfile::tempdir().unwrap();
+    let (frames, times) = synthetic_clip();
+    let (model, dir) = (work.path().join("sparse"), work.path().join("frames"));
+    std::fs::create_dir(&model).unwrap();
+    std::fs::create_dir(&dir).unwrap();
+    std::fs::write(model.join("cameras.txt"), &cameras).unwrap();
+    std::fs::write(model.join("images.txt"), &images).unwrap();
+    for frame in &frames {
+        std::fs::copy(frame, dir.join(frame.file_name().unwrap())).unwrap();
+    }
+    let stamps: Vec<String> = times.iter().map(f64::to_string).collect();
+    let output = std::process::Command::new(binary("c4g"))
+        .args(["--server", &server.url(), "--json", "upload"])
+        .arg(&dir)
+        .args([
+            "--timestamps",
+            &stamps.join(","),
+            "--max-frames",
+            "4",
+            "--colmap",
+        ])
+        .arg(&model)
+        .env_remove("C4G_API_KEY")
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let uploaded: Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(uploaded["id"], clip["id"]);
+    assert_eq!(uploaded["cameras"], clip["cameras"]);
 }
 
 #[test]
@@ -396,5 +435,77 @@ fn renders_follow_the_input_camera_path_in_views_bullet_time_and_new_times() {
             .send()
             .unwrap(),
         "not both",
+    );
+}
+
+/// gRPC `Upload` carries the same cameras (`UploadHeader.cameras`) and refuses bad ones with
+/// INVALID_ARGUMENT naming the problem.
+#[test]
+fn a_grpc_upload_carries_cameras_and_bad_ones_are_invalid_argument() {
+    if !ort_available() {
+        return;
+    }
+    use std::io::Write as _;
+    let server = Server::start(&[]);
+    let (frames, times) = synthetic_clip();
+    let mut writer = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    for path in &frames {
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        writer
+            .start_file(name, zip::write::SimpleFileOptions::default())
+            .unwrap();
+        writer.write_all(&std::fs::read(path).unwrap()).unwrap();
+    }
+    let archive = writer.finish().unwrap().into_inner();
+    let upload = |cameras: pb::GivenCameras| {
+        let header = pb::UploadRequest {
+            part: Some(pb::upload_request::Part::Header(pb::UploadHeader {
+                kind: pb::MediaKind::Zip as i32,
+                timestamps: times.clone(),
+                sampling: Some(pb::ClipSampling {
+                    max_frames: Some(4),
+                    ..Default::default()
+                }),
+                cameras: Some(cameras),
+                ..Default::default()
+            })),
+        };
+        let chunk = pb::UploadRequest {
+            part: Some(pb::upload_request::Part::Chunk(archive.clone())),
+        };
+        tokio::runtime::Runtime::new().unwrap().block_on(async {
+            let mut grpc = C4gClient::connect(server.url()).await.unwrap();
+            grpc.upload(tokio_stream::iter([header, chunk])).await
+        })
+    };
+    let (cameras_txt, images_txt) = colmap(7);
+    let clip = upload(pb::GivenCameras {
+        form: Some(pb::given_cameras::Form::Colmap(pb::ColmapText {
+            cameras_txt,
+            images_txt,
+        })),
+        names: Vec::new(),
+    })
+    .unwrap()
+    .into_inner();
+    let shown = json_of(
+        Client::new()
+            .get(server.at(&format!("/v1/clips/{}", clip.clip_id)))
+            .send()
+            .unwrap(),
+    );
+    assert_eq!(shown["cameras"]["frames"].as_array().unwrap().len(), 4);
+    assert_eq!(shown["cameras"]["format"], "colmap");
+    let refused = upload(pb::GivenCameras {
+        form: Some(pb::given_cameras::Form::Json("[{}]".into())),
+        names: Vec::new(),
+    })
+    .unwrap_err();
+    assert_eq!(refused.code(), tonic::Code::InvalidArgument);
+    assert!(
+        refused
+            .message()
+            .contains("exactly one of world_to_camera and camera_to_world"),
+        "{refused:?}"
     );
 }
