@@ -23,7 +23,7 @@ use crate::batching::DecodeBatcher;
 use crate::camera::CameraSpec;
 use crate::config::{Config, Limits};
 use crate::intake::cameras::{ClipCameras, Parsed};
-use crate::intake::{self, IntakeOptions, IntakeTools, Media, SourceInfo};
+use crate::intake::{self, IntakeOptions, IntakeTools, Media};
 use crate::jobs::{self, JobQueue};
 use crate::pruning::Analyses;
 use crate::quality::{self, Approximation, QualitySpec};
@@ -185,7 +185,8 @@ impl Service {
         metrics::histogram!("c4g_intake_duration_seconds").record(started.elapsed().as_secs_f64());
         let sources: Vec<usize> = intake.frames.iter().map(|f| f.source_index).collect();
         if let Some(parsed) = &cameras {
-            check_camera_count(parsed, &intake.source)?;
+            let source = &intake.source;
+            parsed.check_against(source.frames, source.width, source.height)?;
         }
         let service = self.clone();
         let source = intake.source.clone();
@@ -771,20 +772,6 @@ fn count_sets(exact: usize, interpolated: usize) {
             metrics::counter!("c4g_decoded_sets_total", "how" => how).increment(n as u64);
         }
     }
-}
-
-/// Given cameras come one per source frame: the frames that were read, whatever was chosen.
-fn check_camera_count(parsed: &Parsed, source: &SourceInfo) -> Result<(), ServiceError> {
-    if parsed.cameras.len() != source.frames {
-        return Err(ServiceError::invalid(format!(
-            "{} cameras for {} frames: give one camera per frame of the upload (the {} source \
-             frames that were read, in order), not only the context frames",
-            parsed.cameras.len(),
-            source.frames,
-            source.kind
-        )));
-    }
-    Ok(())
 }
 
 fn check_background(background: [f32; 3]) -> Result<(), ServiceError> {

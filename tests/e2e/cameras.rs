@@ -223,6 +223,10 @@ fn camera_counts_that_do_not_match_and_bad_camera_files_are_400() {
         "cameras.txt line 1: a parameter must be a finite number",
     );
     expect_invalid(
+        upload(&server, &cameras.replace("256 256", "256 192"), &images),
+        "estimated on 256x192 images but the frames are 64x64",
+    );
+    expect_invalid(
         upload(&server, "", &images),
         "uses camera 1, which cameras.txt does not list",
     );

@@ -17,23 +17,25 @@ use std::collections::HashMap;
 
 use glam::DVec3;
 
-use super::frame_order;
 use super::pose::{GivenCamera, Intrinsics};
+use super::{Parsed, frame_order};
 use crate::ServiceError;
 
 /// A camera of `cameras.txt`: intrinsics, and the distortion it had.
 struct Lens {
     intrinsics: Intrinsics,
+    size: (f64, f64),
     model: String,
     distortion: Vec<f64>,
 }
 
-/// Every image's camera, in frame order, and the notes about ignored distortion.
+/// Every image's camera in frame order, the notes about ignored distortion, and the image sizes
+/// the cameras used state.
 pub fn parse(
     cameras_txt: &str,
     images_txt: &str,
     names: Option<&[String]>,
-) -> Result<(Vec<GivenCamera>, Vec<String>), ServiceError> {
+) -> Result<Parsed, ServiceError> {
     let lenses = parse_cameras(cameras_txt)?;
     let images = parse_images(images_txt)?;
     if images.is_empty() {
@@ -42,6 +44,7 @@ pub fn parse(
     let available: Vec<&str> = images.iter().map(|i| i.name.as_str()).collect();
     let order = frame_order(&available, names, "images.txt")?;
     let mut distorted: Vec<u64> = Vec::new();
+    let mut sizes: Vec<(f64, f64)> = Vec::new();
     let cameras = order
         .iter()
         .map(|&i| {
@@ -53,6 +56,9 @@ pub fn parse(
                     image.line, image.name, image.camera_id
                 ))
             })?;
+            if !sizes.contains(&lens.size) {
+                sizes.push(lens.size);
+            }
             if lens.distortion.iter().any(|d| *d != 0.0) && !distorted.contains(&image.camera_id) {
                 distorted.push(image.camera_id);
             }
@@ -75,7 +81,12 @@ pub fn parse(
             )
         })
         .collect();
-    Ok((cameras, notes))
+    Ok(Parsed {
+        cameras,
+        notes,
+        format: "colmap",
+        image_sizes: sizes,
+    })
 }
 
 /// Non-comment lines with their 1-based numbers.
@@ -152,6 +163,7 @@ fn parse_cameras(text: &str) -> Result<HashMap<u64, Lens>, ServiceError> {
         )?;
         let lens = Lens {
             intrinsics,
+            size: (width, height),
             model: model.to_owned(),
             distortion: params[distortion_from..].to_vec(),
         };

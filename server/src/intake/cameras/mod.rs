@@ -61,7 +61,14 @@ pub struct Parsed {
     pub notes: Vec<String>,
     /// `json`, `colmap` or `transforms`.
     pub format: &'static str,
+    /// The image sizes (width, height, pixels) the cameras were estimated at, where the form
+    /// states them (COLMAP, transforms.json): their shape must be the frames'.
+    pub image_sizes: Vec<(f64, f64)>,
 }
+
+/// How far the shape (width over height) of the images cameras were estimated at may be from the
+/// frames': 1%, more than rounding a size to whole pixels, less than any real crop.
+pub const ASPECT_TOLERANCE: f64 = 0.01;
 
 /// Most cameras an upload may carry: as many as the source frames a server takes at most would
 /// be the natural bound, but parsing happens before the frames are read, so a fixed bound keeps
@@ -71,21 +78,21 @@ pub const MAX_CAMERAS: usize = 100_000;
 impl CameraInput {
     /// Reads and checks every camera.
     pub fn parse(&self) -> Result<Parsed, ServiceError> {
-        let (cameras, notes, format) = match self {
-            Self::Json(text) => (json::parse(text)?, Vec::new(), "json"),
+        let parsed = match self {
+            Self::Json(text) => Parsed {
+                cameras: json::parse(text)?,
+                notes: Vec::new(),
+                format: "json",
+                image_sizes: Vec::new(),
+            },
             Self::Colmap {
                 cameras,
                 images,
                 names,
-            } => {
-                let (c, n) = colmap::parse(cameras, images, names.as_deref())?;
-                (c, n, "colmap")
-            }
-            Self::Transforms { json, names } => {
-                let (c, n) = nerfstudio::parse(json, names.as_deref())?;
-                (c, n, "transforms")
-            }
+            } => colmap::parse(cameras, images, names.as_deref())?,
+            Self::Transforms { json, names } => nerfstudio::parse(json, names.as_deref())?,
         };
+        let cameras = &parsed.cameras;
         if cameras.is_empty() {
             return Err(ServiceError::invalid(
                 "the cameras list no camera: give one per frame",
@@ -97,11 +104,7 @@ impl CameraInput {
                 cameras.len()
             )));
         }
-        Ok(Parsed {
-            cameras,
-            notes,
-            format,
-        })
+        Ok(parsed)
     }
 
     /// Feeds the cameras into a clip's content address: other cameras make another clip.
@@ -133,6 +136,38 @@ impl CameraInput {
                 );
             }
         }
+    }
+}
+
+impl Parsed {
+    /// Checks the cameras against the frames they belong to: one per source frame (`frames`, of
+    /// `width` × `height` pixels), estimated at images of the same shape.
+    pub fn check_against(
+        &self,
+        frames: usize,
+        width: u32,
+        height: u32,
+    ) -> Result<(), ServiceError> {
+        if self.cameras.len() != frames {
+            return Err(ServiceError::invalid(format!(
+                "{} cameras for {frames} frames: give one camera per frame of the upload (every \
+                 source frame that was read, in order), not only the context frames",
+                self.cameras.len()
+            )));
+        }
+        let aspect = f64::from(width) / f64::from(height.max(1));
+        if let Some((w, h)) = self
+            .image_sizes
+            .iter()
+            .find(|(w, h)| ((w / h) / aspect - 1.0).abs() > ASPECT_TOLERANCE)
+        {
+            return Err(ServiceError::invalid(format!(
+                "the cameras were estimated on {w}x{h} images but the frames are \
+                 {width}x{height}: a different shape (a crop or a rotation) makes the \
+                 intrinsics wrong; give cameras for these frames"
+            )));
+        }
+        Ok(())
     }
 }
 

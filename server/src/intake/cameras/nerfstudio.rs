@@ -10,17 +10,15 @@
 
 use serde_json::{Map, Value};
 
-use super::frame_order;
 use super::pose::{GivenCamera, Intrinsics};
+use super::{Parsed, frame_order};
 use crate::ServiceError;
 
 const DISTORTION: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
 
-/// Every frame's camera in frame order, and the notes about ignored distortion.
-pub fn parse(
-    text: &str,
-    names: Option<&[String]>,
-) -> Result<(Vec<GivenCamera>, Vec<String>), ServiceError> {
+/// Every frame's camera in frame order, the notes about ignored distortion, and the image sizes
+/// the file states.
+pub fn parse(text: &str, names: Option<&[String]>) -> Result<Parsed, ServiceError> {
     let root: Map<String, Value> = serde_json::from_str(text).map_err(|e| {
         ServiceError::invalid(format!(
             "transforms.json is not a JSON object ({e}): give nerfstudio's transforms.json"
@@ -56,17 +54,26 @@ pub fn parse(
         .collect::<Result<_, _>>()?;
     let order = frame_order(&paths, names, "transforms.json")?;
     let mut notes = Vec::new();
+    let mut sizes = Vec::new();
     let cameras = order
         .iter()
         .map(|&i| {
             let name = format!("transforms.json frames[{i}] ({})", paths[i]);
             let frame = frames[i];
-            let intrinsics = intrinsics(&root, frame, &name, &mut notes)?;
+            let (intrinsics, size) = intrinsics(&root, frame, &name, &mut notes)?;
+            if !sizes.contains(&size) {
+                sizes.push(size);
+            }
             let matrix = transform_matrix(frame, &name)?;
             GivenCamera::from_camera_to_world(&opengl_to_opencv(&matrix), intrinsics, &name)
         })
         .collect::<Result<Vec<_>, _>>()?;
-    Ok((cameras, notes))
+    Ok(Parsed {
+        cameras,
+        notes,
+        format: "transforms",
+        image_sizes: sizes,
+    })
 }
 
 /// A frame's field, else the file's.
@@ -100,7 +107,7 @@ fn intrinsics(
     frame: &Map<String, Value>,
     name: &str,
     notes: &mut Vec<String>,
-) -> Result<Intrinsics, ServiceError> {
+) -> Result<(Intrinsics, (f64, f64)), ServiceError> {
     if let Some(model) = field(root, frame, "camera_model") {
         match model.as_str() {
             Some("OPENCV" | "PINHOLE") => {}
@@ -144,7 +151,10 @@ fn intrinsics(
             notes.push(note);
         }
     }
-    Intrinsics::from_pixels([fx, fy, cx, cy], w, h, name)
+    Ok((
+        Intrinsics::from_pixels([fx, fy, cx, cy], w, h, name)?,
+        (w, h),
+    ))
 }
 
 /// `transform_matrix`: 4 rows of 4 numbers (3 rows are taken too, as some writers leave the last

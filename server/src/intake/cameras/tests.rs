@@ -346,3 +346,22 @@ fn the_content_address_changes_with_the_cameras_and_not_without_them() {
     // independently: SHA-256 of the model, the options as JSON and the frame, first 12 bytes).
     assert_eq!(clip_id("m", &media, &plain), "f974787d9f150738f7ca744e");
 }
+
+#[test]
+fn cameras_must_be_one_per_source_frame_and_of_the_frames_shape() {
+    let (cameras, images) = as_colmap(&capture());
+    let parsed = colmap(&cameras, &images).parse().unwrap();
+    assert_eq!(parsed.image_sizes, vec![(W, H)]);
+    // Twice the size, same shape: intrinsics are fractions of the size, so they still fit.
+    parsed.check_against(5, 1280, 960).unwrap();
+    let count = parsed.check_against(4, 1280, 960).unwrap_err().to_string();
+    assert!(count.contains("5 cameras for 4 frames"), "{count}");
+    let cropped = parsed.check_against(5, 1280, 720).unwrap_err().to_string();
+    assert!(
+        cropped.contains("estimated on 640x480 images but the frames are 1280x720"),
+        "{cropped}"
+    );
+    // The JSON form states no image size: nothing to hold it to.
+    let json = CameraInput::Json(as_json(&capture())).parse().unwrap();
+    json.check_against(5, 1280, 720).unwrap();
+}
