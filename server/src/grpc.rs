@@ -91,6 +91,23 @@ fn clip_proto(record: &ClipRecord, created: bool) -> pb::Clip {
         source_fps: record.source.fps,
         created,
         source_warnings: record.source.warnings.clone(),
+        cameras: record.cameras.as_ref().map(|c| pb::ClipCameras {
+            format: c.format.clone(),
+            scale: c.scale,
+            frames: c
+                .frames
+                .iter()
+                .map(|f| pb::ContextCamera {
+                    time: f.t,
+                    world_to_camera: f.world_to_camera.clone(),
+                    fx: f.intrinsics.fx,
+                    fy: f.intrinsics.fy,
+                    cx: f.intrinsics.cx,
+                    cy: f.intrinsics.cy,
+                })
+                .collect(),
+            notes: c.notes.clone(),
+        }),
     }
 }
 

@@ -500,6 +500,24 @@ fn a_grpc_upload_carries_cameras_and_bad_ones_are_invalid_argument() {
     );
     assert_eq!(shown["cameras"]["frames"].as_array().unwrap().len(), 4);
     assert_eq!(shown["cameras"]["format"], "colmap");
+    // The gRPC clip shows what REST shows.
+    let cameras = clip.cameras.unwrap();
+    assert_eq!(cameras.scale, shown["cameras"]["scale"].as_f64().unwrap());
+    for (frame, rest) in cameras
+        .frames
+        .iter()
+        .zip(shown["cameras"]["frames"].as_array().unwrap())
+    {
+        assert_eq!(frame.time, rest["t"].as_f64().unwrap());
+        let matrix: Vec<f64> = rest["world_to_camera"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        assert_eq!(frame.world_to_camera, matrix);
+        assert_eq!(frame.fx, rest["intrinsics"]["fx"].as_f64().unwrap());
+    }
     let refused = upload(pb::GivenCameras {
         form: Some(pb::given_cameras::Form::Json("[{}]".into())),
         names: Vec::new(),

@@ -121,7 +121,7 @@ class ClipRef(_message.Message):
     def __init__(self, clip_id: _Optional[str] = ...) -> None: ...
 
 class Clip(_message.Message):
-    __slots__ = ("clip_id", "model", "context_times", "source_frames", "source_width", "source_height", "duration", "state", "feature_bytes", "source_kind", "source_fps", "created", "source_warnings")
+    __slots__ = ("clip_id", "model", "context_times", "source_frames", "source_width", "source_height", "duration", "state", "feature_bytes", "source_kind", "source_fps", "created", "source_warnings", "cameras")
     CLIP_ID_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
     CONTEXT_TIMES_FIELD_NUMBER: _ClassVar[int]
@@ -135,6 +135,7 @@ class Clip(_message.Message):
     SOURCE_FPS_FIELD_NUMBER: _ClassVar[int]
     CREATED_FIELD_NUMBER: _ClassVar[int]
     SOURCE_WARNINGS_FIELD_NUMBER: _ClassVar[int]
+    CAMERAS_FIELD_NUMBER: _ClassVar[int]
     clip_id: str
     model: str
     context_times: _containers.RepeatedScalarFieldContainer[float]
@@ -148,7 +149,36 @@ class Clip(_message.Message):
     source_fps: float
     created: bool
     source_warnings: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, clip_id: _Optional[str] = ..., model: _Optional[str] = ..., context_times: _Optional[_Iterable[float]] = ..., source_frames: _Optional[int] = ..., source_width: _Optional[int] = ..., source_height: _Optional[int] = ..., duration: _Optional[float] = ..., state: _Optional[_Union[ClipState, str]] = ..., feature_bytes: _Optional[int] = ..., source_kind: _Optional[str] = ..., source_fps: _Optional[float] = ..., created: _Optional[bool] = ..., source_warnings: _Optional[_Iterable[str]] = ...) -> None: ...
+    cameras: ClipCameras
+    def __init__(self, clip_id: _Optional[str] = ..., model: _Optional[str] = ..., context_times: _Optional[_Iterable[float]] = ..., source_frames: _Optional[int] = ..., source_width: _Optional[int] = ..., source_height: _Optional[int] = ..., duration: _Optional[float] = ..., state: _Optional[_Union[ClipState, str]] = ..., feature_bytes: _Optional[int] = ..., source_kind: _Optional[str] = ..., source_fps: _Optional[float] = ..., created: _Optional[bool] = ..., source_warnings: _Optional[_Iterable[str]] = ..., cameras: _Optional[_Union[ClipCameras, _Mapping]] = ...) -> None: ...
+
+class ClipCameras(_message.Message):
+    __slots__ = ("format", "scale", "frames", "notes")
+    FORMAT_FIELD_NUMBER: _ClassVar[int]
+    SCALE_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
+    NOTES_FIELD_NUMBER: _ClassVar[int]
+    format: str
+    scale: float
+    frames: _containers.RepeatedCompositeFieldContainer[ContextCamera]
+    notes: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, format: _Optional[str] = ..., scale: _Optional[float] = ..., frames: _Optional[_Iterable[_Union[ContextCamera, _Mapping]]] = ..., notes: _Optional[_Iterable[str]] = ...) -> None: ...
+
+class ContextCamera(_message.Message):
+    __slots__ = ("time", "world_to_camera", "fx", "fy", "cx", "cy")
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    WORLD_TO_CAMERA_FIELD_NUMBER: _ClassVar[int]
+    FX_FIELD_NUMBER: _ClassVar[int]
+    FY_FIELD_NUMBER: _ClassVar[int]
+    CX_FIELD_NUMBER: _ClassVar[int]
+    CY_FIELD_NUMBER: _ClassVar[int]
+    time: float
+    world_to_camera: _containers.RepeatedScalarFieldContainer[float]
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    def __init__(self, time: _Optional[float] = ..., world_to_camera: _Optional[_Iterable[float]] = ..., fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ...) -> None: ...
 
 class ListClipsRequest(_message.Message):
     __slots__ = ()
