@@ -20,6 +20,7 @@
 //! | [`wire`] | parsers of the packed Gaussian payloads: the `C4GS` binary format and the proto's arrays |
 //! | [`export`] | [`Client::export`]: a time range as one file other viewers open (a zip of `.ply` or `.spz` files, a fitted `.splatv`) |
 //! | [`render`] | [`RenderRequest`] and [`Client::render`]: images, depth, alpha and trajectory videos |
+//! | [`tracks`] | [`Client::tracks`]: where points seen in the input frames go at other times |
 //! | [`stream`] | [`Client::stream`]: Gaussian sets over a time range, over gRPC |
 //! | [`jobs`] | [`RefineRequest`], [`Client::refine`] and [`Job`]: refinement jobs, followed as server-sent events |
 //! | [`sse`] | [`SseDecoder`]: the `text/event-stream` format, chunk by chunk |
@@ -39,6 +40,7 @@ pub mod quality;
 pub mod render;
 pub mod sse;
 pub mod stream;
+pub mod tracks;
 pub mod upload;
 pub mod wire;
 
@@ -57,4 +59,5 @@ pub use render::{
 };
 pub use sse::{SseDecoder, SseEvent};
 pub use stream::{Compact, GaussianStream, Spacing, StreamOptions};
+pub use tracks::{Track, TrackPoint, TrackQuery, TrackRequest, Tracks};
 pub use upload::{UploadCameras, UploadOptions, UploadSource, content_type_for};

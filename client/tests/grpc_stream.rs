@@ -120,6 +120,12 @@ impl C4g for Fake {
     ) -> Result<Response<Self::RenderTrajectoryStream>, Status> {
         Err(Status::unimplemented("fake"))
     }
+    async fn tracks(
+        &self,
+        _: Request<proto::TracksRequest>,
+    ) -> Result<Response<proto::TracksResponse>, Status> {
+        Err(Status::unimplemented("fake"))
+    }
     async fn list_models(
         &self,
         _: Request<proto::ListModelsRequest>,

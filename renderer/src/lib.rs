@@ -1,9 +1,9 @@
 //! The scene vocabulary of the C4G service, and what turns scenes into pixels.
 //!
 //! What a decoded moment of a clip *is* ([`GaussianSet`]), what looks at it ([`Camera`]), how a
-//! camera moves ([`trajectory`]), how scenes are stored ([`formats`]), how they become images
-//! ([`raster`]), how images are compared ([`metrics`]) and which Gaussians a scene needs
-//! ([`pruning`]). Nothing here knows about models, ONNX or networks.
+//! camera moves ([`trajectory`]), where a point goes ([`tracking`]), how scenes are stored
+//! ([`formats`]), how they become images ([`raster`]), how images are compared ([`metrics`]) and
+//! which Gaussians a scene needs ([`pruning`]). Nothing here knows about models, ONNX or networks.
 
 /// Pinhole cameras: intrinsics, world-to-camera poses, OpenCV axes.
 mod camera;
@@ -23,6 +23,8 @@ pub mod raster;
 /// The unit tests' deterministic generator.
 #[cfg(test)]
 mod test_rng;
+/// Point tracks from Gaussian trajectories: a pixel's Gaussians carry its point to other times.
+pub mod tracking;
 /// Camera paths: interpolation and the orbit, spiral and dolly presets.
 pub mod trajectory;
 

@@ -176,6 +176,8 @@ fn main() {
         (8, "", r#"{"fps":20,"quality":"fast","keyframe_interval":4}"#.to_owned()),
         (9, "", r#"{"format":"spz_zip","step":0.2}"#.to_owned()),
         (9, "", r#"{"format":"splatv","start":0.1,"end":0.3,"fps":10,"quality":"fast"}"#.to_owned()),
+        (10, "", r#"{"queries":[{"t":0.1,"x":3.5,"y":4.0},{"t":0.0,"x":0.0,"y":63.9}],"times":[0,0.2]}"#.to_owned()),
+        (10, "", r#"{"queries":[{"t":0.2,"x":8,"y":8}],"width":16,"height":16,"quality":"fast"}"#.to_owned()),
         (3, "max_frames=2&fps=4", String::new()),
         (4, "0", String::new()),
         (5, CLIP_MARK, String::new()),
@@ -286,7 +288,7 @@ fn main() {
             tagged(
                 5,
                 &pb::RenderTrajectoryRequest {
-                    clip_id,
+                    clip_id: clip_id.clone(),
                     cameras: vec![camera.clone(), camera],
                     width: 16,
                     height: 16,
@@ -296,6 +298,20 @@ fn main() {
                 .encode_to_vec(),
             ),
             tagged(6, &[]),
+            tagged(
+                9,
+                &pb::TracksRequest {
+                    clip_id,
+                    queries: vec![pb::TrackQuery {
+                        time: 0.1,
+                        x: 3.5,
+                        y: 4.0,
+                    }],
+                    times: vec![0.0, 0.2],
+                    ..Default::default()
+                }
+                .encode_to_vec(),
+            ),
             tagged(
                 7,
                 &pb::ProgressRequest {

@@ -142,6 +142,9 @@ pub struct Config {
     /// Most Gaussian sets one request may decode (times in a decode, frames of a stream or video).
     #[arg(long, env = "C4G_MAX_TIMES", default_value_t = 4096)]
     pub max_times: usize,
+    /// Most query points one track request may follow (`POST /v1/clips/{id}/tracks`).
+    #[arg(long, env = "C4G_MAX_TRACK_QUERIES", default_value_t = 4096)]
+    pub max_track_queries: usize,
     /// Largest 4D export (`POST /v1/clips/{id}/export`), in MiB: what the file, or for `.splatv`
     /// the sets it is fitted from, may hold in memory while it is made.
     #[arg(long, env = "C4G_MAX_EXPORT_MIB", default_value_t = 512)]
@@ -272,6 +275,8 @@ pub struct Limits {
     pub intake_timeout: Duration,
     /// Most Gaussian sets per request.
     pub max_times: usize,
+    /// Most query points per track request.
+    pub max_track_queries: usize,
     /// Largest 4D export, bytes.
     pub max_export_bytes: u64,
     /// Largest gRPC message, bytes.
@@ -301,6 +306,7 @@ impl Config {
             max_archive_bytes: self.max_archive_mib.saturating_mul(MIB),
             intake_timeout: Duration::from_secs(self.intake_timeout_s.max(1)),
             max_times: self.max_times.max(1),
+            max_track_queries: self.max_track_queries.max(1),
             max_export_bytes: self.max_export_mib.saturating_mul(MIB),
             max_grpc_message_bytes: self.max_grpc_message_mib.saturating_mul(1 << 20),
         }

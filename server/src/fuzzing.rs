@@ -194,9 +194,13 @@ impl Edge {
         };
         let head = String::from_utf8_lossy(head).replace(CLIP_MARK, &self.clip_id);
         let id = &self.clip_id;
-        // Route 9 is the export; every other byte picks among the first nine routes as it did
-        // before the export came, so the corpora keep their meaning.
-        let route = if route == 9 { 9 } else { route % 9 };
+        // Route 9 is the export and 10 the tracks; every other byte picks among the first nine
+        // routes as it did before those came, so the corpora keep their meaning.
+        let route = if route == 9 || route == 10 {
+            route
+        } else {
+            route % 9
+        };
         let (method, uri, content_type, body) = match route {
             0 => (
                 Method::POST,
@@ -243,6 +247,12 @@ impl Edge {
                 "application/json",
                 rest,
             ),
+            10 => (
+                Method::POST,
+                format!("/v1/clips/{id}/tracks"),
+                "application/json",
+                rest,
+            ),
             _ => (Method::GET, format!("/v1/jobs/{head}"), "", body),
         };
         let (status, answer) = self.call(method, &uri, content_type, body.to_vec());
@@ -278,7 +288,9 @@ impl Edge {
                 Err(_) => bytes.to_vec(),
             }
         }
-        let (path, message) = match method % 9 {
+        // Method 9 is Tracks; every other byte picks as it did before Tracks came.
+        let method = if method == 9 { 9 } else { method % 9 };
+        let (path, message) = match method {
             0 => (
                 "c4g.v1.C4G/GetClip",
                 patched(message, |m: &mut pb::ClipRef| mark(&mut m.clip_id)),
@@ -306,6 +318,10 @@ impl Edge {
             ),
             6 => ("c4g.v1.C4G/ListModels", message.to_vec()),
             7 => ("c4g.v1.Jobs/Progress", message.to_vec()),
+            9 => (
+                "c4g.v1.C4G/Tracks",
+                patched(message, |m: &mut pb::TracksRequest| mark(&mut m.clip_id)),
+            ),
             _ => ("c4g.v1.Jobs/Fail", message.to_vec()),
         };
         let mut framed = Vec::with_capacity(message.len() + 5);

@@ -23,6 +23,7 @@ use crate::quality::{Preset, PruneSpec, QualitySpec};
 use crate::service::{PathRequest, Service, ViewRequest};
 use crate::store::ClipRecord;
 use crate::streaming::{STREAM_AHEAD, Spacing, StreamRequest, check_compact, plan_sets};
+use crate::tracking::{TrackQuery, TrackRequest};
 use crate::wire::{self, Precision};
 use crate::{AppState, ServiceError};
 use c4g_renderer::formats::c4gv::EncodeOptions;
@@ -188,6 +189,14 @@ fn keyframes_spec(
 }
 
 /// What a request's `quality`, `keyframes` and `prune` ask for; the service checks it.
+fn track_query(q: &pb::TrackQuery) -> TrackQuery {
+    TrackQuery {
+        t: q.time,
+        x: q.x,
+        y: q.y,
+    }
+}
+
 fn quality_spec(
     quality: i32,
     keyframes: Option<&pb::Keyframes>,
@@ -514,6 +523,57 @@ impl C4g for Grpc {
             }
         });
         Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+
+    async fn tracks(
+        &self,
+        request: Request<pb::TracksRequest>,
+    ) -> Result<Response<pb::TracksResponse>, Status> {
+        let request = request.into_inner();
+        let track_request = TrackRequest {
+            queries: request.queries.iter().map(track_query).collect(),
+            times: (!request.times.is_empty()).then_some(request.times),
+            width: request.width,
+            height: request.height,
+            quality: quality_spec(
+                request.quality,
+                request.keyframes.as_ref(),
+                request.prune.as_ref(),
+            )?,
+        };
+        let tracks = self
+            .service()?
+            .tracks(&request.clip_id, track_request)
+            .await?;
+        Ok(Response::new(pb::TracksResponse {
+            width: tracks.width,
+            height: tracks.height,
+            times: tracks.times,
+            tracks: tracks
+                .tracks
+                .into_iter()
+                .map(|track| pb::Track {
+                    query: Some(pb::TrackQuery {
+                        time: track.query.t,
+                        x: track.query.x,
+                        y: track.query.y,
+                    }),
+                    anchored: track.anchored,
+                    points: track
+                        .points
+                        .into_iter()
+                        .map(|p| pb::TrackPoint {
+                            time: p.t,
+                            x: p.x,
+                            y: p.y,
+                            visible: p.visible,
+                            depth: p.depth,
+                            position: p.position.to_vec(),
+                        })
+                        .collect(),
+                })
+                .collect(),
+        }))
     }
 
     async fn list_models(

@@ -16,6 +16,7 @@
 //! | `quality` | the speed/accuracy presets (exact, balanced, fast) and pruning as clients ask for it |
 //! | `pruning` | which Gaussians a pruned request keeps: each clip's scene analysis, cached |
 //! | `streaming` | streams of sets over a time range, planned once, decoded ahead of the reader |
+//! | `tracking` | point tracks: query points followed through a clip by the Gaussians that explain them |
 //! | `exports` | 4D exports: a time range as a zip of `.ply` or `.spz` files, or a fitted `.splatv` |
 //! | `renderer` | the rasterizer choice |
 //! | `image_formats` | what renders answer with: PNG, raw depth and alpha, MP4 |
@@ -63,6 +64,7 @@ mod shared_clips;
 mod state;
 pub mod store;
 mod streaming;
+mod tracking;
 mod wire;
 mod work;
 mod workers;

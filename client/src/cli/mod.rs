@@ -9,6 +9,7 @@ mod jobs;
 mod refine;
 mod render;
 mod stream;
+mod track;
 mod upload;
 
 use std::fmt::Write as _;
@@ -62,6 +63,9 @@ enum Command {
     Render(render::Args),
     /// Stream Gaussian sets over a time range (gRPC), to .ply files or one line per set.
     Stream(stream::Args),
+    /// Track points seen in an input frame: where each is at other times, and whether it is
+    /// visible there.
+    Track(track::Args),
     /// Refine novel views with the video diffusion model: submit a job, follow it, and download
     /// the refined video.
     Refine(refine::Args),
@@ -95,6 +99,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Export(args) => export::run(&cx, args).await,
         Command::Render(args) => render::run(&cx, args).await,
         Command::Stream(args) => stream::run(&cx, args).await,
+        Command::Track(args) => track::run(&cx, args).await,
         Command::Refine(args) => refine::run(&cx, args).await,
         Command::Job(args) => jobs::job(&cx, args).await,
         Command::Jobs => jobs::jobs(&cx).await,

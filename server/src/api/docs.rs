@@ -35,6 +35,7 @@ fn limit(name: &str, limits: &Limits) -> Option<Value> {
     Some(match name {
         "C4G_MAX_SIDE" => limits.max_side.into(),
         "C4G_MAX_TIMES" => limits.max_times.into(),
+        "C4G_MAX_TRACK_QUERIES" => limits.max_track_queries.into(),
         "C4G_MAX_DURATION_S" => limits.max_duration_s.into(),
         "C4G_MAX_CONTEXT_FRAMES" => limits.max_context_frames.into(),
         "C4G_MAX_SOURCE_FRAMES" => limits.max_source_frames.into(),

@@ -10,6 +10,7 @@ mod json;
 pub(crate) mod models;
 mod render;
 mod stream;
+mod tracks;
 mod viewer;
 
 use axum::Router;
@@ -36,6 +37,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/clips/{id}/render", post(render::render))
         .route("/v1/clips/{id}/stream", post(stream::stream))
         .route("/v1/clips/{id}/export", post(export::export))
+        .route("/v1/clips/{id}/tracks", post(tracks::tracks))
         .route("/v1/clips/{id}/refine", post(jobs::submit))
         .route("/v1/jobs", get(jobs::list))
         // Cancelling is POST .../cancel; a job's record stays readable (there is no DELETE).

@@ -408,6 +408,74 @@ class RenderedImage(_message.Message):
     data: bytes
     def __init__(self, time: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., data: _Optional[bytes] = ...) -> None: ...
 
+class TracksRequest(_message.Message):
+    __slots__ = ("clip_id", "queries", "times", "width", "height", "quality", "keyframes", "prune")
+    CLIP_ID_FIELD_NUMBER: _ClassVar[int]
+    QUERIES_FIELD_NUMBER: _ClassVar[int]
+    TIMES_FIELD_NUMBER: _ClassVar[int]
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    QUALITY_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    PRUNE_FIELD_NUMBER: _ClassVar[int]
+    clip_id: str
+    queries: _containers.RepeatedCompositeFieldContainer[TrackQuery]
+    times: _containers.RepeatedScalarFieldContainer[float]
+    width: int
+    height: int
+    quality: Quality
+    keyframes: Keyframes
+    prune: Prune
+    def __init__(self, clip_id: _Optional[str] = ..., queries: _Optional[_Iterable[_Union[TrackQuery, _Mapping]]] = ..., times: _Optional[_Iterable[float]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., quality: _Optional[_Union[Quality, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ...) -> None: ...
+
+class TrackQuery(_message.Message):
+    __slots__ = ("time", "x", "y")
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    X_FIELD_NUMBER: _ClassVar[int]
+    Y_FIELD_NUMBER: _ClassVar[int]
+    time: float
+    x: float
+    y: float
+    def __init__(self, time: _Optional[float] = ..., x: _Optional[float] = ..., y: _Optional[float] = ...) -> None: ...
+
+class TracksResponse(_message.Message):
+    __slots__ = ("width", "height", "times", "tracks")
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    TIMES_FIELD_NUMBER: _ClassVar[int]
+    TRACKS_FIELD_NUMBER: _ClassVar[int]
+    width: int
+    height: int
+    times: _containers.RepeatedScalarFieldContainer[float]
+    tracks: _containers.RepeatedCompositeFieldContainer[Track]
+    def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., times: _Optional[_Iterable[float]] = ..., tracks: _Optional[_Iterable[_Union[Track, _Mapping]]] = ...) -> None: ...
+
+class Track(_message.Message):
+    __slots__ = ("query", "anchored", "points")
+    QUERY_FIELD_NUMBER: _ClassVar[int]
+    ANCHORED_FIELD_NUMBER: _ClassVar[int]
+    POINTS_FIELD_NUMBER: _ClassVar[int]
+    query: TrackQuery
+    anchored: bool
+    points: _containers.RepeatedCompositeFieldContainer[TrackPoint]
+    def __init__(self, query: _Optional[_Union[TrackQuery, _Mapping]] = ..., anchored: _Optional[bool] = ..., points: _Optional[_Iterable[_Union[TrackPoint, _Mapping]]] = ...) -> None: ...
+
+class TrackPoint(_message.Message):
+    __slots__ = ("time", "x", "y", "visible", "depth", "position")
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    X_FIELD_NUMBER: _ClassVar[int]
+    Y_FIELD_NUMBER: _ClassVar[int]
+    VISIBLE_FIELD_NUMBER: _ClassVar[int]
+    DEPTH_FIELD_NUMBER: _ClassVar[int]
+    POSITION_FIELD_NUMBER: _ClassVar[int]
+    time: float
+    x: float
+    y: float
+    visible: bool
+    depth: float
+    position: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, time: _Optional[float] = ..., x: _Optional[float] = ..., y: _Optional[float] = ..., visible: _Optional[bool] = ..., depth: _Optional[float] = ..., position: _Optional[_Iterable[float]] = ...) -> None: ...
+
 class ListModelsRequest(_message.Message):
     __slots__ = ()
     def __init__(self) -> None: ...

@@ -1,0 +1,48 @@
+//! `POST /v1/clips/{id}/tracks`: where query points seen in the input frames go at other times
+//! (`crate::tracking` says how).
+
+use axum::Json;
+use axum::extract::State;
+use serde::Deserialize;
+use serde_json::Value;
+
+use super::json::{self, ClipId, JsonBody};
+use crate::keyframes::KeyframesSpec;
+use crate::quality::{Preset, PruneSpec, QualitySpec};
+use crate::tracking::{TrackQuery, TrackRequest, Tracks};
+use crate::{AppState, ServiceError};
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TracksRequest {
+    queries: Vec<TrackQuery>,
+    times: Option<Vec<f64>>,
+    width: Option<u32>,
+    height: Option<u32>,
+    /// A named speed/accuracy trade for the sets the tracks are read from (default exact).
+    quality: Option<Preset>,
+    keyframes: Option<KeyframesSpec>,
+    prune: Option<PruneSpec>,
+}
+
+pub async fn tracks(
+    State(state): State<AppState>,
+    ClipId(id): ClipId,
+    JsonBody(body): JsonBody<Value>,
+) -> Result<Json<Tracks>, ServiceError> {
+    let service = state.service()?.clone();
+    json::check_body(&body, service.limits.max_times)?;
+    let request: TracksRequest = json::typed(body)?;
+    let request = TrackRequest {
+        queries: request.queries,
+        times: request.times,
+        width: request.width,
+        height: request.height,
+        quality: QualitySpec {
+            preset: request.quality,
+            keyframes: request.keyframes,
+            prune: request.prune,
+        },
+    };
+    Ok(Json(service.tracks(&id, request).await?))
+}
