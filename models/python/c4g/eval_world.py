@@ -18,7 +18,8 @@ answers, written separately (no code of `synthetic` is used but the model's fram
 - occlusion and disocclusion happen as objects pass each other and the backdrop.
 
 Deterministic from a seed; any seed is a clip. Frames are rendered with C4G's fixed intrinsics,
-at `FPS`, for `FRAMES` frames: enough for 4 context frames 4 source frames apart.
+at `FPS`, for `FRAMES` frames: enough for 4 context frames 4 source frames apart. `tracks` gives
+ground-truth point tracks on the objects (for `c4g.eval_fixtures`), without changing any render.
 """
 
 from __future__ import annotations
@@ -360,3 +361,49 @@ def render(scene: EvalScene, times: np.ndarray, size: int, cameras: np.ndarray |
     with torch.no_grad():
         out = render_batch(stack(0), stack(1), stack(2), stack(3), stack(4), (f, f, size / 2, size / 2), torch.from_numpy(w2c), size, size)
     return out["rgb"].clamp(0, 1).numpy().astype(np.float32), out["expected_depth"].numpy(), w2c
+
+
+# Points followed on each object for tracking evaluation (`c4g.eval_fixtures`), split over its parts.
+TRACKS_PER_THING = 16
+
+
+def track_points(scene: EvalScene) -> list[tuple[int, int, np.ndarray]]:
+    """(thing, part, Gaussian indices into that part) of the points to track: TRACKS_PER_THING
+    per object, shared between its parts.
+
+    Chosen without drawing from any random generator, so that adding tracks changed nothing that
+    `make_scene` makes or `render` draws: indices evenly spaced through a part's Gaussians, whose
+    positions on the surface were themselves random draws, so they land at scattered surface points.
+    A Gaussian's centre lies on its surface, and its identity holds over time: its centre at any
+    time is the tracked point."""
+    out = []
+    for k, thing in enumerate(scene.things):
+        per_part = -(-TRACKS_PER_THING // len(thing.parts))
+        for p, part in enumerate(thing.parts):
+            count = min(per_part, len(part.means))
+            out.append((k, p, np.linspace(0, len(part.means) - 1, count).round().astype(int)))
+    return out
+
+
+def tracks(scene: EvalScene, times: np.ndarray, size: int, depth: np.ndarray, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ground-truth point tracks of `track_points` at `times`, seen from `w2c` [T, 4, 4] with the
+    expected `depth` [T, H, W] that `render` gave for the same times and cameras: (world positions
+    [T, K, 3], pixels [T, K, 2] with pixel (i, j) covering [i, i+1) x [j, j+1), visible [T, K]).
+
+    Visibility is `c4g.synthetic.render_clip`'s rule, so both worlds' tracks mean the same: in
+    front of the camera (z > 0.01), inside the image, and no farther than the rendered surface at
+    its pixel allows (z <= 1.05 depth + 0.02)."""
+    chosen = track_points(scene)
+    pts = []
+    for t in times:
+        placed = [thing.gaussians(float(t)) for thing in scene.things]
+        pts.append(np.concatenate([placed[k][p].means[idx] for k, p, idx in chosen]) if chosen else np.zeros((0, 3)))
+    pts = np.stack(pts)
+    f = FOCAL * size
+    cam = np.einsum("tij,tkj->tki", w2c[:, :3, :3], pts) + w2c[:, None, :3, 3]
+    z = np.maximum(cam[..., 2], 1e-9)
+    uv = np.stack([f * cam[..., 0] / z + size / 2, f * cam[..., 1] / z + size / 2], -1)
+    inside = (cam[..., 2] > 0.01) & (uv >= 0).all(-1) & (uv < size).all(-1)
+    px = np.clip(uv.astype(int), 0, size - 1)
+    surface = np.take_along_axis(depth.reshape(len(times), -1), px[..., 1] * size + px[..., 0], axis=1)
+    return pts, uv, inside & (cam[..., 2] <= surface * 1.05 + 0.02)
