@@ -20,6 +20,7 @@
 //! | [`wire`] | parsers of the packed Gaussian payloads: the `C4GS` binary format and the proto's arrays |
 //! | [`export`] | [`Client::export`]: a time range as one file other viewers open (a zip of `.ply` or `.spz` files, a fitted `.splatv`) |
 //! | [`render`] | [`RenderRequest`] and [`Client::render`]: images, depth, alpha and trajectory videos |
+//! | [`cameras`] | [`Client::recover_cameras`]: each context frame's camera recovered by photometric alignment |
 //! | [`tracks`] | [`Client::tracks`]: where points seen in the input frames go at other times |
 //! | [`stream`] | [`Client::stream`]: Gaussian sets over a time range, over gRPC |
 //! | [`jobs`] | [`RefineRequest`], [`Client::refine`] and [`Job`]: refinement jobs, followed as server-sent events |
@@ -28,6 +29,7 @@
 //! Gaussian sets arrive as [`c4g_renderer::GaussianSet`], so they write straight to `.ply` or
 //! `.splat` with [`c4g_renderer::formats`] and render with the renderer's rasterizers.
 
+pub mod cameras;
 pub mod client;
 pub mod clips;
 pub mod error;
@@ -45,6 +47,7 @@ pub mod upload;
 pub mod wire;
 
 pub use c4g_renderer::GaussianSet;
+pub use cameras::{FrameFit, RecoveredCameras};
 pub use client::Client;
 pub use clips::{Clip, ClipSource};
 pub use error::Error;

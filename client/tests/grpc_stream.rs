@@ -126,6 +126,12 @@ impl C4g for Fake {
     ) -> Result<Response<proto::TracksResponse>, Status> {
         Err(Status::unimplemented("fake"))
     }
+    async fn recover_cameras(
+        &self,
+        _: Request<proto::RecoverCamerasRequest>,
+    ) -> Result<Response<proto::RecoveredCameras>, Status> {
+        Err(Status::unimplemented("fake"))
+    }
     async fn list_models(
         &self,
         _: Request<proto::ListModelsRequest>,

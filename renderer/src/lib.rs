@@ -2,9 +2,13 @@
 //!
 //! What a decoded moment of a clip *is* ([`GaussianSet`]), what looks at it ([`Camera`]), how a
 //! camera moves ([`trajectory`]), where a point goes ([`tracking`]), how scenes are stored
-//! ([`formats`]), how they become images ([`raster`]), how images are compared ([`metrics`]) and
-//! which Gaussians a scene needs ([`pruning`]). Nothing here knows about models, ONNX or networks.
+//! ([`formats`]), how they become images ([`raster`]), how images are compared ([`metrics`]),
+//! which Gaussians a scene needs ([`pruning`]) and which camera saw a frame of it ([`align`]).
+//! Nothing here knows about models, ONNX or networks.
 
+/// Camera recovery by photometric alignment: a render's analytic camera Jacobian and the
+/// coarse-to-fine Levenberg–Marquardt that finds the camera matching a frame, with a confidence.
+pub mod align;
 /// Pinhole cameras: intrinsics, world-to-camera poses, OpenCV axes.
 mod camera;
 /// The crate's one error type.
@@ -28,6 +32,7 @@ pub mod tracking;
 /// Camera paths: interpolation and the orbit, spiral and dolly presets.
 pub mod trajectory;
 
+pub use align::{AlignOptions, Alignment, align_camera};
 pub use camera::{Camera, Intrinsics, NormalizedIntrinsics};
 pub use error::RendererError;
 pub use gaussians::{CANONICAL_CHANNELS, FeatureBlock, Gaussian, GaussianSet};

@@ -16,10 +16,11 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::camera::{CameraSpec, InputSpec, IntrinsicsSpec};
 use crate::image_formats::{ImageFormat, encode_image};
-use crate::intake::cameras::CameraInput;
+use crate::intake::cameras::{CameraInput, ClipCameras};
 use crate::intake::{IntakeOptions, Media, MediaKind};
 use crate::keyframes::KeyframesSpec;
 use crate::quality::{Preset, PruneSpec, QualitySpec};
+use crate::recovery::RecoverOptions;
 use crate::service::{PathRequest, Service, ViewRequest};
 use crate::store::ClipRecord;
 use crate::streaming::{STREAM_AHEAD, Spacing, StreamRequest, check_compact, plan_sets};
@@ -92,23 +93,27 @@ fn clip_proto(record: &ClipRecord, created: bool) -> pb::Clip {
         source_fps: record.source.fps,
         created,
         source_warnings: record.source.warnings.clone(),
-        cameras: record.cameras.as_ref().map(|c| pb::ClipCameras {
-            format: c.format.clone(),
-            scale: c.scale,
-            frames: c
-                .frames
-                .iter()
-                .map(|f| pb::ContextCamera {
-                    time: f.t,
-                    world_to_camera: f.world_to_camera.clone(),
-                    fx: f.intrinsics.fx,
-                    fy: f.intrinsics.fy,
-                    cx: f.intrinsics.cx,
-                    cy: f.intrinsics.cy,
-                })
-                .collect(),
-            notes: c.notes.clone(),
-        }),
+        cameras: record.cameras.as_ref().map(clip_cameras),
+    }
+}
+
+fn clip_cameras(c: &ClipCameras) -> pb::ClipCameras {
+    pb::ClipCameras {
+        format: c.format.clone(),
+        scale: c.scale,
+        frames: c
+            .frames
+            .iter()
+            .map(|f| pb::ContextCamera {
+                time: f.t,
+                world_to_camera: f.world_to_camera.clone(),
+                fx: f.intrinsics.fx,
+                fy: f.intrinsics.fy,
+                cx: f.intrinsics.cx,
+                cy: f.intrinsics.cy,
+            })
+            .collect(),
+        notes: c.notes.clone(),
     }
 }
 
@@ -571,6 +576,37 @@ impl C4g for Grpc {
                             position: p.position.to_vec(),
                         })
                         .collect(),
+                })
+                .collect(),
+        }))
+    }
+
+    async fn recover_cameras(
+        &self,
+        request: Request<pb::RecoverCamerasRequest>,
+    ) -> Result<Response<pb::RecoveredCameras>, Status> {
+        let request = request.into_inner();
+        let options = RecoverOptions {
+            refine_focal: request.refine_focal,
+        };
+        let recovered = self
+            .service()?
+            .recover_cameras(&request.clip_id, options)
+            .await?;
+        Ok(Response::new(pb::RecoveredCameras {
+            cameras: Some(clip_cameras(&recovered.cameras)),
+            fits: recovered
+                .fits
+                .iter()
+                .map(|f| pb::FrameFit {
+                    time: f.t,
+                    initial_residual: f.initial_residual,
+                    residual: f.residual,
+                    confidence: f.confidence,
+                    coverage: f.coverage,
+                    conditioning: f.conditioning,
+                    iterations: u32::try_from(f.iterations).unwrap_or(u32::MAX),
+                    converged: f.converged,
                 })
                 .collect(),
         }))

@@ -16,6 +16,7 @@
 //! | `quality` | the speed/accuracy presets (exact, balanced, fast) and pruning as clients ask for it |
 //! | `pruning` | which Gaussians a pruned request keeps: each clip's scene analysis, cached |
 //! | `streaming` | streams of sets over a time range, planned once, decoded ahead of the reader |
+//! | `recovery` | recovered cameras: each context frame's camera by photometric alignment of the model's Gaussians |
 //! | `tracking` | point tracks: query points followed through a clip by the Gaussians that explain them |
 //! | `exports` | 4D exports: a time range as a zip of `.ply` or `.spz` files, or a fitted `.splatv` |
 //! | `renderer` | the rasterizer choice |
@@ -56,6 +57,7 @@ mod keyframes;
 pub mod metrics;
 mod pruning;
 mod quality;
+mod recovery;
 mod refine;
 mod renderer;
 pub mod service;

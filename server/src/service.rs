@@ -507,9 +507,10 @@ impl Service {
         let record = self.store.get_or_fetch(id).await?;
         self.check_times(&record, &[view.t])?;
         let (w, h) = self.image_size(view.width, view.height)?;
+        let cameras = self.input_cameras(&record);
         let camera = view
             .camera
-            .resolve(record.cameras.as_ref(), view.t, None)?
+            .resolve(cameras.as_ref(), view.t, None)?
             .camera(w, h)?;
         check_background(view.background)?;
         let approximation = self.approximation(&record, &quality, &[view.t])?;
@@ -601,9 +602,9 @@ impl Service {
                 _ => (start + (end - start) * fraction(i)).min(end),
             })
             .collect();
-        let given = record.cameras.as_ref();
+        let given = self.input_cameras(record);
         let resolve = |spec: &CameraSpec, i: usize| {
-            spec.resolve(given, times[i], Some(fraction(i)))?
+            spec.resolve(given.as_ref(), times[i], Some(fraction(i)))?
                 .camera(w, h)
         };
         let cameras = if path.cameras.is_empty() {

@@ -482,6 +482,12 @@ impl ClipStore {
         Ok(encoding)
     }
 
+    /// A file `name` kept in clip `id`'s directory beside its record (derived data, deleted
+    /// with the clip).
+    pub fn clip_file(&self, id: &str, name: &str) -> PathBuf {
+        self.dir.join(id).join(name)
+    }
+
     /// Where context frame `index` (in time order) of clip `id` is stored, as PNG.
     pub fn frame_path(&self, id: &str, index: usize) -> PathBuf {
         self.dir

@@ -4,8 +4,9 @@
 //! The sets of a clip are its Gaussians' trajectories (query `i` is the same Gaussian at every
 //! time), so a track is read off them: a point follows the Gaussians that explain its pixel at the
 //! query time, by their rasterizer weights (`c4g_renderer::tracking`, where the rule is stated).
-//! Positions are in the input camera at each time (the clip's given cameras, interpolated between
-//! its context cameras; the identity without them, the static camera of the public C4G code);
+//! Positions are in the input camera at each time (the clip's given or recovered cameras,
+//! interpolated between its context cameras; the identity without them, the static camera of the
+//! public C4G code);
 //! visibility is a depth test against the render's depth there. The sets are decoded as any
 //! decode is (exact by default, or approximated as `quality` asks), all times in one request.
 
@@ -17,9 +18,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::ServiceError;
 use crate::camera::{CameraSpec, InputSpec};
+use crate::intake::cameras::ClipCameras;
 use crate::quality::QualitySpec;
 use crate::service::Service;
-use crate::store::ClipRecord;
 
 /// A point to track: where it is seen, at which time.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -115,6 +116,7 @@ impl Service {
         decoded.dedup();
         let sets = self.decode(id, decoded, request.quality).await?;
         let queries = request.queries;
+        let cameras = self.input_cameras(&record);
         self.work(move |service| {
             let footprint = service.renderer.footprint();
             let options = RenderOptions {
@@ -125,7 +127,10 @@ impl Service {
                 let i = sets
                     .binary_search_by(|(s, _)| s.total_cmp(&t))
                     .map_err(|_| ServiceError::Internal(format!("no set decoded at {t} s")))?;
-                Ok((&sets[i].1, input_camera(&record, t, width, height)?))
+                Ok((
+                    &sets[i].1,
+                    input_camera(cameras.as_ref(), t, width, height)?,
+                ))
             };
             let anchors = queries
                 .iter()
@@ -182,9 +187,9 @@ fn track_point(t: f64, seen: Observation) -> TrackPoint {
     }
 }
 
-/// The input camera of clip `record` at time `t`, at `width` × `height`.
+/// The input camera of a clip following `cameras` at time `t`, at `width` × `height`.
 fn input_camera(
-    record: &ClipRecord,
+    cameras: Option<&ClipCameras>,
     t: f64,
     width: u32,
     height: u32,
@@ -196,8 +201,7 @@ fn input_camera(
         }),
         ..CameraSpec::default()
     };
-    spec.resolve(record.cameras.as_ref(), t, None)?
-        .camera(width, height)
+    spec.resolve(cameras, t, None)?.camera(width, height)
 }
 
 fn check_queries(

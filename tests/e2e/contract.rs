@@ -56,6 +56,8 @@ STATED_IN_WORDS = [
     (r"POST /v1/clips/\{id\}/render", 400, r"frame count is the number of cameras"),
     (r"POST /v1/clips/\{id\}/render", 413, r"pixels in all"),
     (r"POST /v1/clips/\{id\}/(gaussians|render)", 400, r"make \d+ keyframes"),
+    (r"POST /v1/clips/\{id\}/tracks", 400, r"outside the clip's context span|outside the \d+x\d+ image|make \d+ keyframes"),
+    (r"POST /v1/clips/\{id\}/tracks", 413, r"times in one request|C4G_MAX_TRACK_QUERIES|pixels in all"),
     (r"POST /v1/clips/\{id\}/(stream|export)", 400, r"outside the clip's context span|is after end|make \d+ keyframes"),
     (r"POST /v1/clips/\{id\}/(stream|export)", 413, r"sets in one stream|C4G_MAX_EXPORT_MIB|frames in one zip"),
     (r"POST /v1/clips/\{id\}/refine", 400, r"a divisor of that|shape of text_embedding"),

@@ -1,6 +1,7 @@
 //! The command line: global flags, the subcommands (one file each), and the output helpers they
 //! share. Results go to stdout (text, or JSON with `--json`); progress and notes go to stderr.
 
+mod cameras;
 mod decode;
 mod delete;
 mod export;
@@ -63,6 +64,9 @@ enum Command {
     Render(render::Args),
     /// Stream Gaussian sets over a time range (gRPC), to .ply files or one line per set.
     Stream(stream::Args),
+    /// A clip's cameras, given at upload or recovered; --recover recovers them by photometric
+    /// alignment of the model's own Gaussians.
+    Cameras(cameras::Args),
     /// Track points seen in an input frame: where each is at other times, and whether it is
     /// visible there.
     Track(track::Args),
@@ -100,6 +104,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Render(args) => render::run(&cx, args).await,
         Command::Stream(args) => stream::run(&cx, args).await,
         Command::Track(args) => track::run(&cx, args).await,
+        Command::Cameras(args) => cameras::run(&cx, args).await,
         Command::Refine(args) => refine::run(&cx, args).await,
         Command::Job(args) => jobs::job(&cx, args).await,
         Command::Jobs => jobs::jobs(&cx).await,

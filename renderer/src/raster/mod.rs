@@ -65,6 +65,7 @@ mod cpu;
 #[cfg(feature = "gpu")]
 pub mod gpu;
 
+pub(crate) use cpu::tiles_3dgs;
 pub use cpu::{CpuRasterizer, PAIR_BUDGET, PixelWeight, TILE};
 
 use serde::{Deserialize, Serialize};

@@ -301,8 +301,13 @@ pub async fn get(
     State(state): State<AppState>,
     ClipId(id): ClipId,
 ) -> Result<Json<Value>, ServiceError> {
-    let record = state.service()?.store.get_or_fetch(&id).await?;
-    Ok(Json(clip_json(&record, None)))
+    let service = state.service()?;
+    let record = service.store.get_or_fetch(&id).await?;
+    let mut clip = clip_json(&record, None);
+    if let Some(recovered) = service.recovered_cameras(&id) {
+        clip["recovered_cameras"] = json!(recovered);
+    }
+    Ok(Json(clip))
 }
 
 pub async fn delete(

@@ -1,5 +1,6 @@
 //! The HTTP routes, one file per endpoint group, and the layers around them.
 
+mod cameras;
 mod clips;
 mod docs;
 mod export;
@@ -38,6 +39,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/clips/{id}/stream", post(stream::stream))
         .route("/v1/clips/{id}/export", post(export::export))
         .route("/v1/clips/{id}/tracks", post(tracks::tracks))
+        .route("/v1/clips/{id}/cameras/recover", post(cameras::recover))
         .route("/v1/clips/{id}/refine", post(jobs::submit))
         .route("/v1/jobs", get(jobs::list))
         // Cancelling is POST .../cancel; a job's record stays readable (there is no DELETE).

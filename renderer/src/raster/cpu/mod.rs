@@ -41,6 +41,8 @@ use crate::{Camera, GaussianSet, RendererError};
 use bin::{Chunks, TileGrid};
 use blend::{TileAcc, TileRow, blend_tile, d2_cut};
 pub use pixel::PixelWeight;
+// The 3DGS footprint's rule, for the differentiable render of `crate::align`.
+pub(crate) use project::tiles_3dgs;
 use project::{Splat, View};
 
 /// Tile edge in pixels.

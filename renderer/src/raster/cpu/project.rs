@@ -200,8 +200,9 @@ impl View {
 
 /// The pixels (inclusive ranges along x and y, inside the image) of the 3DGS tiles of a splat
 /// centred at `centre` whose covariance is `[[mxx + eps, mxy], [mxy, myy + eps]]`, in f64;
-/// `None` when the tile range is empty. The rule is `super::super`'s (`Footprint::Tiles3dgs`).
-fn tiles_3dgs(
+/// `None` when the tile range is empty. The rule is `super::super`'s (`Footprint::Tiles3dgs`);
+/// camera alignment's differentiable render (`crate::align`) reaches pixels by it too.
+pub(crate) fn tiles_3dgs(
     centre: [f64; 2],
     [mxx, mxy, myy]: [f64; 3],
     eps: f64,

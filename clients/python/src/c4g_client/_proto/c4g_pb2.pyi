@@ -476,6 +476,42 @@ class TrackPoint(_message.Message):
     position: _containers.RepeatedScalarFieldContainer[float]
     def __init__(self, time: _Optional[float] = ..., x: _Optional[float] = ..., y: _Optional[float] = ..., visible: _Optional[bool] = ..., depth: _Optional[float] = ..., position: _Optional[_Iterable[float]] = ...) -> None: ...
 
+class RecoverCamerasRequest(_message.Message):
+    __slots__ = ("clip_id", "refine_focal")
+    CLIP_ID_FIELD_NUMBER: _ClassVar[int]
+    REFINE_FOCAL_FIELD_NUMBER: _ClassVar[int]
+    clip_id: str
+    refine_focal: bool
+    def __init__(self, clip_id: _Optional[str] = ..., refine_focal: _Optional[bool] = ...) -> None: ...
+
+class RecoveredCameras(_message.Message):
+    __slots__ = ("cameras", "fits")
+    CAMERAS_FIELD_NUMBER: _ClassVar[int]
+    FITS_FIELD_NUMBER: _ClassVar[int]
+    cameras: ClipCameras
+    fits: _containers.RepeatedCompositeFieldContainer[FrameFit]
+    def __init__(self, cameras: _Optional[_Union[ClipCameras, _Mapping]] = ..., fits: _Optional[_Iterable[_Union[FrameFit, _Mapping]]] = ...) -> None: ...
+
+class FrameFit(_message.Message):
+    __slots__ = ("time", "initial_residual", "residual", "confidence", "coverage", "conditioning", "iterations", "converged")
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    INITIAL_RESIDUAL_FIELD_NUMBER: _ClassVar[int]
+    RESIDUAL_FIELD_NUMBER: _ClassVar[int]
+    CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
+    COVERAGE_FIELD_NUMBER: _ClassVar[int]
+    CONDITIONING_FIELD_NUMBER: _ClassVar[int]
+    ITERATIONS_FIELD_NUMBER: _ClassVar[int]
+    CONVERGED_FIELD_NUMBER: _ClassVar[int]
+    time: float
+    initial_residual: float
+    residual: float
+    confidence: float
+    coverage: float
+    conditioning: float
+    iterations: int
+    converged: bool
+    def __init__(self, time: _Optional[float] = ..., initial_residual: _Optional[float] = ..., residual: _Optional[float] = ..., confidence: _Optional[float] = ..., coverage: _Optional[float] = ..., conditioning: _Optional[float] = ..., iterations: _Optional[int] = ..., converged: _Optional[bool] = ...) -> None: ...
+
 class ListModelsRequest(_message.Message):
     __slots__ = ()
     def __init__(self) -> None: ...
