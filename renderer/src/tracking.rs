@@ -5,7 +5,7 @@
 //! the Gaussians that the rasterizer blends there ([`CpuRasterizer::pixel_weights`]); a point
 //! follows them.
 //!
-//! **Anchoring** ([`PointAnchor::new`]), at the query time, in the query camera:
+//! **Anchoring** ([`anchor`]), at the query time, in the query camera:
 //! - the pixel containing the query point gives each Gaussian's blending weight `Tᵢ·αᵢ` and depth;
 //! - the *surface* is the first Gaussians' depth where the accumulated weight reaches half of the
 //!   pixel's alpha (the median depth: a silhouette pixel half over the background still picks
@@ -79,29 +79,18 @@ pub struct Observation {
 }
 
 impl PointAnchor {
-    /// Anchors the point at pixel coordinates `(x, y)` of `camera`'s view of `set`; `None` when
-    /// the pixel shows nothing (alpha below [`MIN_COVERAGE`]). `(x, y)` must lie inside the image.
-    pub fn new(
+    /// The point at pixel coordinates `(x, y)` of `camera` whose pixel has `weights`.
+    fn from_weights(
         set: &GaussianSet,
         camera: &Camera,
-        options: &RenderOptions,
-        x: f32,
-        y: f32,
-    ) -> Result<Option<Self>, RendererError> {
-        let (w, h) = (camera.width() as f32, camera.height() as f32);
-        if !(x.is_finite() && y.is_finite() && (0.0..w).contains(&x) && (0.0..h).contains(&y)) {
-            return Err(RendererError::InvalidRenderOptions(format!(
-                "a tracked point ({x}, {y}) must lie inside the {w}x{h} image"
-            )));
-        }
-        let pixel = (x.floor() as u32, y.floor() as u32);
-        let weights = CpuRasterizer::new().pixel_weights(set, camera, options, &[pixel])?;
-        let weights = weights.into_iter().next().unwrap_or_default();
-        let followed = surface(&weights);
+        (x, y): (f32, f32),
+        weights: &[PixelWeight],
+    ) -> Option<Self> {
+        let followed = surface(weights);
         let total: f64 = followed.iter().map(|p| f64::from(p.weight)).sum();
         let alpha: f32 = weights.iter().map(|p| p.weight).sum();
         if alpha < MIN_COVERAGE || total <= 0.0 {
-            return Ok(None);
+            return None;
         }
         let depth = followed
             .iter()
@@ -119,8 +108,7 @@ impl PointAnchor {
         let members = followed
             .iter()
             .map(|p| {
-                let i = p.index as usize;
-                let (mean, rotation) = frame(set, i);
+                let (mean, rotation) = frame(set, p.index as usize);
                 Member {
                     index: p.index,
                     weight: f64::from(p.weight),
@@ -128,7 +116,7 @@ impl PointAnchor {
                 }
             })
             .collect();
-        Ok(Some(Self { point, members }))
+        Some(Self { point, members })
     }
 
     /// The 3D point at the query time.
@@ -160,6 +148,35 @@ impl PointAnchor {
         }
         (weights > 0.0).then(|| (sum / weights).as_vec3())
     }
+}
+
+/// Anchors each of `points` (pixel coordinates of `camera`'s view of `set`, inside the image):
+/// `None` for a point whose pixel shows nothing (alpha below [`MIN_COVERAGE`]). One projection of
+/// the set serves them all.
+pub fn anchor(
+    set: &GaussianSet,
+    camera: &Camera,
+    options: &RenderOptions,
+    points: &[(f32, f32)],
+) -> Result<Vec<Option<PointAnchor>>, RendererError> {
+    let (w, h) = (camera.width() as f32, camera.height() as f32);
+    for &(x, y) in points {
+        if !(x.is_finite() && y.is_finite() && (0.0..w).contains(&x) && (0.0..h).contains(&y)) {
+            return Err(RendererError::InvalidRenderOptions(format!(
+                "a tracked point ({x}, {y}) must lie inside the {w}x{h} image"
+            )));
+        }
+    }
+    let pixels: Vec<(u32, u32)> = points
+        .iter()
+        .map(|&(x, y)| (x.floor() as u32, y.floor() as u32))
+        .collect();
+    let weights = CpuRasterizer::new().pixel_weights(set, camera, options, &pixels)?;
+    Ok(points
+        .iter()
+        .zip(&weights)
+        .map(|(&point, weights)| PointAnchor::from_weights(set, camera, point, weights))
+        .collect())
 }
 
 /// Each of `points` (the set's frame) as `camera` sees it in its view of `set`.
@@ -259,6 +276,14 @@ mod tests {
         Camera::from_normalized(NormalizedIntrinsics::C4G_DEFAULT, 64, 64, pose).unwrap()
     }
 
+    /// The anchor of one point (default render options).
+    fn one(set: &GaussianSet, cam: &Camera, x: f32, y: f32) -> Option<PointAnchor> {
+        anchor(set, cam, &RenderOptions::default(), &[(x, y)])
+            .unwrap()
+            .pop()
+            .unwrap()
+    }
+
     /// A wall of overlapping Gaussians at depth `z`, moved by `shift` and turned by `turn`.
     fn wall(z: f32, shift: Vec3, turn: Quat) -> GaussianSet {
         let mut out = Vec::new();
@@ -283,9 +308,7 @@ mod tests {
         let set = wall(2.0, Vec3::ZERO, Quat::IDENTITY);
         let cam = camera(Affine3A::IDENTITY);
         let options = RenderOptions::default();
-        let anchor = PointAnchor::new(&set, &cam, &options, 30.3, 35.8)
-            .unwrap()
-            .unwrap();
+        let anchor = one(&set, &cam, 30.3, 35.8).unwrap();
         assert!(anchor.gaussians() >= 1);
         let p = anchor.position(&set).unwrap();
         assert!((p - anchor.point()).length() < 1e-5);
@@ -303,9 +326,7 @@ mod tests {
         let cam = camera(Affine3A::IDENTITY);
         let options = RenderOptions::default();
         let before = wall(2.0, Vec3::ZERO, Quat::IDENTITY);
-        let anchor = PointAnchor::new(&before, &cam, &options, 40.5, 30.5)
-            .unwrap()
-            .unwrap();
+        let anchor = one(&before, &cam, 40.5, 30.5).unwrap();
         let shift = Vec3::new(0.1, -0.05, 0.2);
         let turn = Quat::from_rotation_y(0.3);
         let after = wall(2.0, shift, turn);
@@ -322,18 +343,21 @@ mod tests {
         let cam = camera(Affine3A::IDENTITY);
         let options = RenderOptions::default();
         // The wall covers the centre only: the corner pixel is empty.
-        assert!(
-            PointAnchor::new(&set, &cam, &options, 0.5, 0.5)
-                .unwrap()
-                .is_none()
-        );
-        assert!(PointAnchor::new(&set, &cam, &options, 64.0, 3.0).is_err());
-        assert!(PointAnchor::new(&set, &cam, &options, f32::NAN, 3.0).is_err());
-        assert!(
-            PointAnchor::new(&GaussianSet::default(), &cam, &options, 3.0, 3.0)
-                .unwrap()
-                .is_none()
-        );
+        assert!(one(&set, &cam, 0.5, 0.5).is_none());
+        assert!(anchor(&set, &cam, &options, &[(3.0, 3.0), (64.0, 3.0)]).is_err());
+        assert!(anchor(&set, &cam, &options, &[(f32::NAN, 3.0)]).is_err());
+        assert!(one(&GaussianSet::default(), &cam, 3.0, 3.0).is_none());
+        // Many points at once answer as each alone.
+        let many = anchor(
+            &set,
+            &cam,
+            &options,
+            &[(30.3, 35.8), (0.5, 0.5), (40.5, 30.5)],
+        )
+        .unwrap();
+        assert_eq!(many[0], one(&set, &cam, 30.3, 35.8));
+        assert_eq!(many[1], None);
+        assert_eq!(many[2], one(&set, &cam, 40.5, 30.5));
     }
 
     #[test]
@@ -341,9 +365,7 @@ mod tests {
         let back = wall(3.0, Vec3::ZERO, Quat::IDENTITY);
         let cam = camera(Affine3A::IDENTITY);
         let options = RenderOptions::default();
-        let anchor = PointAnchor::new(&back, &cam, &options, 32.5, 32.5)
-            .unwrap()
-            .unwrap();
+        let anchor = one(&back, &cam, 32.5, 32.5).unwrap();
         let point = anchor.position(&back).unwrap();
         let front = wall(1.5, Vec3::ZERO, Quat::IDENTITY);
         let both = GaussianSet::from_gaussians(back.iter().chain(front.iter()));

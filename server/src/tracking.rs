@@ -12,7 +12,7 @@
 
 use std::sync::Arc;
 
-use c4g_renderer::tracking::{Observation, PointAnchor, observe};
+use c4g_renderer::tracking::{Observation, PointAnchor, anchor, observe};
 use c4g_renderer::{Camera, GaussianSet, RenderOptions};
 use serde::{Deserialize, Serialize};
 
@@ -132,13 +132,26 @@ impl Service {
                     input_camera(cameras.as_ref(), t, width, height)?,
                 ))
             };
-            let anchors = queries
-                .iter()
-                .map(|q| {
-                    let (set, camera) = at(q.t)?;
-                    Ok(PointAnchor::new(set, &camera, &options, q.x, q.y)?)
-                })
-                .collect::<Result<Vec<_>, ServiceError>>()?;
+            // Queries at one time share one projection of its set.
+            let mut anchors: Vec<Option<PointAnchor>> = vec![None; queries.len()];
+            let mut query_times: Vec<f64> = queries.iter().map(|q| q.t).collect();
+            query_times.sort_by(f64::total_cmp);
+            query_times.dedup();
+            for t in query_times {
+                let (set, camera) = at(t)?;
+                let (who, pixels): (Vec<usize>, Vec<(f32, f32)>) = queries
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, q)| q.t == t)
+                    .map(|(k, q)| (k, (q.x, q.y)))
+                    .unzip();
+                for (k, found) in who
+                    .into_iter()
+                    .zip(anchor(set, &camera, &options, &pixels)?)
+                {
+                    anchors[k] = found;
+                }
+            }
             let mut points: Vec<Vec<TrackPoint>> = vec![Vec::new(); queries.len()];
             for &t in &times {
                 let (set, camera) = at(t)?;
