@@ -178,6 +178,7 @@ fn main() {
         (9, "", r#"{"format":"splatv","start":0.1,"end":0.3,"fps":10,"quality":"fast"}"#.to_owned()),
         (10, "", r#"{"queries":[{"t":0.1,"x":3.5,"y":4.0},{"t":0.0,"x":0.0,"y":63.9}],"times":[0,0.2]}"#.to_owned()),
         (10, "", r#"{"queries":[{"t":0.2,"x":8,"y":8}],"width":16,"height":16,"quality":"fast"}"#.to_owned()),
+        (11, "", r#"{"refine_focal":true}"#.to_owned()),
         (3, "max_frames=2&fps=4", String::new()),
         (4, "0", String::new()),
         (5, CLIP_MARK, String::new()),
@@ -298,6 +299,14 @@ fn main() {
                 .encode_to_vec(),
             ),
             tagged(6, &[]),
+            tagged(
+                10,
+                &pb::RecoverCamerasRequest {
+                    clip_id: clip_id.clone(),
+                    refine_focal: false,
+                }
+                .encode_to_vec(),
+            ),
             tagged(
                 9,
                 &pb::TracksRequest {

@@ -253,6 +253,12 @@ impl Edge {
                 "application/json",
                 rest,
             ),
+            11 => (
+                Method::POST,
+                format!("/v1/clips/{id}/cameras/recover"),
+                "application/json",
+                rest,
+            ),
             _ => (Method::GET, format!("/v1/jobs/{head}"), "", body),
         };
         let (status, answer) = self.call(method, &uri, content_type, body.to_vec());
@@ -288,8 +294,13 @@ impl Edge {
                 Err(_) => bytes.to_vec(),
             }
         }
-        // Method 9 is Tracks; every other byte picks as it did before Tracks came.
-        let method = if method == 9 { 9 } else { method % 9 };
+        // Methods 9 (Tracks) and 10 (RecoverCameras) came later; every other byte picks as it
+        // did before them.
+        let method = if (9..=10).contains(&method) {
+            method
+        } else {
+            method % 9
+        };
         let (path, message) = match method {
             0 => (
                 "c4g.v1.C4G/GetClip",
@@ -321,6 +332,12 @@ impl Edge {
             9 => (
                 "c4g.v1.C4G/Tracks",
                 patched(message, |m: &mut pb::TracksRequest| mark(&mut m.clip_id)),
+            ),
+            10 => (
+                "c4g.v1.C4G/RecoverCameras",
+                patched(message, |m: &mut pb::RecoverCamerasRequest| {
+                    mark(&mut m.clip_id)
+                }),
             ),
             _ => ("c4g.v1.Jobs/Fail", message.to_vec()),
         };
