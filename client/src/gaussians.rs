@@ -127,6 +127,7 @@ impl Client {
                 GaussianFormat::Binary,
                 precision,
                 approximation,
+                false,
             )
             .await?;
         wire::parse_binary(&bytes)
@@ -152,7 +153,44 @@ impl Client {
         format: GaussianFormat,
         approximation: &Approximation,
     ) -> Result<Bytes, Error> {
-        self.decode_request(clip_id, times, format, Precision::F32, approximation)
+        self.decode_request(clip_id, times, format, Precision::F32, approximation, false)
+            .await
+    }
+
+    /// The Gaussians at `times` with each one's lifted feature vector
+    /// ([`GaussianSet::features`]): a package with a feature decoder only (others answer 422
+    /// `unsupported`).
+    pub async fn gaussians_with_features(
+        &self,
+        clip_id: &str,
+        times: &[f64],
+        precision: Precision,
+        approximation: &Approximation,
+    ) -> Result<Vec<GaussianFrame>, Error> {
+        let bytes = self
+            .decode_request(
+                clip_id,
+                times,
+                GaussianFormat::Binary,
+                precision,
+                approximation,
+                true,
+            )
+            .await?;
+        wire::parse_binary(&bytes)
+    }
+
+    /// [`gaussians_raw_approximated`](Self::gaussians_raw_approximated) with each Gaussian's lifted
+    /// feature vector (JSON `features`, `C4GS` version 2, `.ply` `feat_*` properties; `.splat`
+    /// has no room for them and is refused).
+    pub async fn gaussians_raw_with_features(
+        &self,
+        clip_id: &str,
+        times: &[f64],
+        format: GaussianFormat,
+        approximation: &Approximation,
+    ) -> Result<Bytes, Error> {
+        self.decode_request(clip_id, times, format, Precision::F32, approximation, true)
             .await
     }
 
@@ -163,12 +201,16 @@ impl Client {
         format: GaussianFormat,
         precision: Precision,
         approximation: &Approximation,
+        features: bool,
     ) -> Result<Bytes, Error> {
         let url = self.url(&["v1", "clips", clip_id, "gaussians"]);
         let mut body = json!(approximation);
         body["times"] = json!(times);
         body["format"] = json!(format);
         body["precision"] = json!(precision);
+        if features {
+            body["features"] = json!(true);
+        }
         let request = self
             .http()
             .post(url)

@@ -21,7 +21,8 @@
 //! | [`export`] | [`Client::export`]: a time range as one file other viewers open (a zip of `.ply` or `.spz` files, a fitted `.splatv`) |
 //! | [`render`] | [`RenderRequest`] and [`Client::render`]: images, depth, alpha and trajectory videos |
 //! | [`cameras`] | [`Client::recover_cameras`]: each context frame's camera recovered by photometric alignment |
-//! | [`tracks`] | [`Client::tracks`]: where points seen in the input frames go at other times |
+//! | [`tracks`] | [`Client::tracks`]: where points seen in the input frames go at other times, by their Gaussians or by feature matching |
+//! | [`segment`] | [`Client::segment`]: the Gaussians whose lifted feature is like a clicked pixel's, and their masks |
 //! | [`stream`] | [`Client::stream`]: Gaussian sets over a time range, over gRPC |
 //! | [`jobs`] | [`RefineRequest`], [`Client::refine`] and [`Job`]: refinement jobs, followed as server-sent events |
 //! | [`sse`] | [`SseDecoder`]: the `text/event-stream` format, chunk by chunk |
@@ -40,6 +41,7 @@ pub mod keyframes;
 pub mod model;
 pub mod quality;
 pub mod render;
+pub mod segment;
 pub mod sse;
 pub mod stream;
 pub mod tracks;
@@ -60,7 +62,8 @@ pub use quality::{Approximation, Prune, Quality};
 pub use render::{
     CameraSpec, IntrinsicsSpec, RenderFormat, RenderRequest, Rendered, TrajectoryPreset,
 };
+pub use segment::{Mask, Segment, SegmentRequest, Selection};
 pub use sse::{SseDecoder, SseEvent};
 pub use stream::{Compact, GaussianStream, Spacing, StreamOptions};
-pub use tracks::{Track, TrackPoint, TrackQuery, TrackRequest, Tracks};
+pub use tracks::{Track, TrackPoint, TrackQuery, TrackRequest, Tracker, Tracks};
 pub use upload::{UploadCameras, UploadOptions, UploadSource, content_type_for};

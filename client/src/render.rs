@@ -83,7 +83,7 @@ pub struct IntrinsicsSpec {
 
 /// What a render produces.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+#[serde(rename_all = "snake_case")]
 pub enum RenderFormat {
     /// RGB PNG.
     Png,
@@ -93,6 +93,10 @@ pub enum RenderFormat {
     Alpha,
     /// H.264 video (trajectories).
     Mp4,
+    /// Raw little-endian `f32` lifted features, `[H, W, F]` (`X-C4G-Channels` is F).
+    Features,
+    /// The lifted features coloured by the clip's PCA basis, RGB PNG.
+    FeaturesPca,
 }
 
 impl RenderFormat {
@@ -103,6 +107,8 @@ impl RenderFormat {
             RenderFormat::Depth => "depth",
             RenderFormat::Alpha => "alpha",
             RenderFormat::Mp4 => "mp4",
+            RenderFormat::Features => "features",
+            RenderFormat::FeaturesPca => "features_pca",
         }
     }
 }
@@ -160,6 +166,8 @@ pub struct Rendered {
     pub width: Option<u32>,
     /// Image height, when the server said (`X-C4G-Height`).
     pub height: Option<u32>,
+    /// Floats a pixel of a raw feature image (`X-C4G-Channels`).
+    pub channels: Option<u32>,
 }
 
 impl Client {
@@ -180,6 +188,7 @@ impl Client {
         };
         let width = number("x-c4g-width");
         let height = number("x-c4g-height");
+        let channels = number("x-c4g-channels");
         let content_type = headers
             .get(CONTENT_TYPE)
             .and_then(|v| v.to_str().ok())
@@ -190,6 +199,7 @@ impl Client {
             content_type,
             width,
             height,
+            channels,
         })
     }
 }

@@ -19,9 +19,23 @@ pub struct TrackQuery {
     pub y: f32,
 }
 
+/// Which tracker follows the points.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Tracker {
+    /// The Gaussians that explain a query's pixel carry it (the server's default).
+    #[default]
+    Gaussians,
+    /// A point is where the rendered feature field matches its feature best (a package with a
+    /// feature decoder only).
+    Features,
+}
+
 /// What to track, and where to answer.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct TrackRequest {
+    /// The tracker (`None`: the server's default, the Gaussians').
+    pub tracker: Option<Tracker>,
     /// The points.
     pub queries: Vec<TrackQuery>,
     /// The times to answer at (empty: the clip's context times).
@@ -47,6 +61,9 @@ pub struct TrackPoint {
     pub depth: f32,
     /// The 3D point in the model's frame.
     pub position: [f32; 3],
+    /// The feature tracker's: the match's cosine similarity with the query's feature.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub similarity: Option<f32>,
 }
 
 /// One query's track.
@@ -63,6 +80,9 @@ pub struct Track {
 /// The server's answer.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Tracks {
+    /// The tracker that followed the points.
+    #[serde(default)]
+    pub tracker: Tracker,
     /// The image size positions are in.
     pub width: u32,
     /// Likewise.
@@ -79,6 +99,9 @@ impl Client {
         let url = self.url(&["v1", "clips", clip_id, "tracks"]);
         let mut body = json!(request.approximation);
         body["queries"] = json!(request.queries);
+        if let Some(tracker) = request.tracker {
+            body["tracker"] = json!(tracker);
+        }
         if !request.times.is_empty() {
             body["times"] = json!(request.times);
         }

@@ -37,6 +37,7 @@ fn set(x: f32, precision: proto::Precision) -> proto::GaussianSet {
         rotations: pack(&[1.0, 0.0, 0.0, 0.0]),
         opacities: pack(&[0.5]),
         colors: pack(&[1.0, 0.5, 0.25]),
+        ..Default::default()
     }
 }
 
@@ -124,6 +125,12 @@ impl C4g for Fake {
         &self,
         _: Request<proto::TracksRequest>,
     ) -> Result<Response<proto::TracksResponse>, Status> {
+        Err(Status::unimplemented("fake"))
+    }
+    async fn segment(
+        &self,
+        _: Request<proto::SegmentRequest>,
+    ) -> Result<Response<proto::SegmentResponse>, Status> {
         Err(Status::unimplemented("fake"))
     }
     async fn recover_cameras(

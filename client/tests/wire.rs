@@ -166,6 +166,7 @@ fn proto_set(precision: proto::Precision, count: u32, shift: f32) -> proto::Gaus
         rotations: pack(&rotations),
         opacities: pack(&opacities),
         colors: pack(&colors),
+        ..Default::default()
     }
 }
 

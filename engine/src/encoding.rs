@@ -47,7 +47,13 @@ pub struct Encoding {
     shape: [usize; 3],
     frame_step: Option<f64>,
     context_projection: OnceLock<ContextProjection>,
+    /// This encoding's number in the process (clones share it: they hold the same values), what
+    /// a device-resident copy of it is kept under (`crate::resident`).
+    serial: u64,
 }
+
+/// The next encoding's [`Encoding::serial`].
+static SERIALS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 
 /// The first decoder layer's projection of an encoding's features, `[T, P, 3C]`, and the engine
 /// whose package's weights made it.
@@ -136,6 +142,7 @@ impl Encoding {
             shape,
             frame_step: None,
             context_projection: OnceLock::new(),
+            serial: SERIALS.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
         })
     }
 
@@ -152,6 +159,11 @@ impl Encoding {
     /// The source's frame step in seconds, when known.
     pub fn frame_step(&self) -> Option<f64> {
         self.frame_step
+    }
+
+    /// This encoding's number in the process (see the field).
+    pub(crate) fn serial(&self) -> u64 {
+        self.serial
     }
 
     /// Times of the encoded frames, in encoded (increasing) order.

@@ -22,19 +22,22 @@
 
 use std::borrow::Cow;
 use std::path::Path;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use c4g_renderer::{FeatureBlock, GaussianSet};
-use c4g_runtime::{Graph, RunOutputs, RuntimeError, create_session};
+use c4g_runtime::{ExecutionProvider, Graph, RunOutputs, RuntimeError, create_session};
 use image::RgbImage;
-use ort::value::TensorRef;
+use ort::memory::AllocationDevice;
+use ort::value::{Tensor, TensorRef};
 
 use crate::encoding::{ContextFrame, Encoding, encoding_order};
 use crate::error::ShapeDim::{Fixed, Free};
 use crate::graph::{Contract, GAUSSIAN_CHANNELS, context_projection_width};
-use crate::options::EngineOptions;
+use crate::options::{DEFAULT_RESIDENT_BUDGET, EngineOptions};
 use crate::package::{AttentionKind, DecoderForm, Manifest, Package};
 use crate::query_subset::QuerySubset;
+use crate::resident::{Resident, ResidentCache, ResidentStats};
 use crate::time::{NormalizedTimes, TimePolicy};
 use crate::{EngineError, Result, preprocess};
 
@@ -55,6 +58,8 @@ pub struct Engine {
     context_projection: Option<Graph>,
     decoder: Graph,
     feature_decoder: Option<Graph>,
+    /// Device-resident encodings, when on (`EngineOptions::resident_budget`).
+    resident: Option<ResidentCache>,
 }
 
 impl std::fmt::Debug for Engine {
@@ -109,6 +114,7 @@ impl Engine {
         let time_policy = options
             .time_policy
             .unwrap_or_else(|| m.declared_time_policy());
+        let resident = resident_cache(&options);
         Ok(Self {
             id: NEXT_ENGINE_ID.fetch_add(1, Ordering::Relaxed),
             package,
@@ -118,7 +124,13 @@ impl Engine {
             context_projection,
             decoder,
             feature_decoder,
+            resident,
         })
+    }
+
+    /// What the device-resident encodings hold and have done (`None`: residency is off).
+    pub fn resident_stats(&self) -> Option<ResidentStats> {
+        self.resident.as_ref().map(ResidentCache::stats)
     }
 
     /// The package this engine runs.
@@ -268,10 +280,18 @@ impl Engine {
     ) -> Result<Vec<GaussianSet>> {
         self.check_encoding(encoding, times)?;
         let projection = self.context_projection(encoding)?;
+        let resident = match &self.resident {
+            Some(cache) => {
+                let width = context_projection_width(self.manifest());
+                cache.get(encoding, projection.as_deref().map(|p| (p, width)))?
+            }
+            None => None,
+        };
         let batch = self.decode_batch_size(encoding.frame_count());
         let mut sets = Vec::with_capacity(times.len());
         for chunk in times.chunks(batch) {
-            let inputs = DecoderInputs::new(encoding, projection.as_deref(), chunk, queries);
+            let mut inputs = DecoderInputs::new(encoding, projection.as_deref(), chunk, queries);
+            inputs.resident = resident.clone();
             sets.extend(self.decode_chunk(&inputs, None)?);
         }
         Ok(sets)
@@ -502,13 +522,16 @@ impl Engine {
 
     /// `gaussians` [B, N, 14] for one batch ([B, Q, 14] on a query subset).
     fn run_decoder(&self, inputs: &DecoderInputs<'_>) -> Result<Vec<f32>> {
-        let (features, context_times, target_times) = inputs.tensors()?;
         let shape = [
             inputs.batch,
             inputs.query_count(self.manifest()),
             GAUSSIAN_CHANNELS,
         ];
         let read = |outputs: &RunOutputs<'_, '_>| Ok(outputs.f32("gaussians", &shape)?.to_vec());
+        if let Some(resident) = &inputs.resident {
+            return self.run_decoder_bound(inputs, resident, read);
+        }
+        let (features, context_times, target_times) = inputs.tensors()?;
         let mut feeds = ort::inputs![
             "features" => features,
             "context_times" => context_times,
@@ -521,6 +544,42 @@ impl Engine {
             feeds.push(("query_indices".into(), queries.into()));
         }
         Ok(self.decoder.run(feeds, read)?)
+    }
+
+    /// [`run_decoder`](Self::run_decoder) with the encoding's tensors resident on the device:
+    /// they are bound as they are, the targets' times and query indices copied in.
+    fn run_decoder_bound(
+        &self,
+        inputs: &DecoderInputs<'_>,
+        resident: &Resident,
+        read: impl FnOnce(&RunOutputs<'_, '_>) -> c4g_runtime::Result<Vec<f32>>,
+    ) -> Result<Vec<f32>> {
+        // Owned tensors: ort clones a borrowed one through its own device copy to bind it, which
+        // takes a lock the binding already holds (ort 2.0.0-rc.15 deadlocks there).
+        let prepare = || RuntimeError::ort("preparing the decoder's inputs");
+        let [t, _, _] = inputs.shape;
+        let context_times =
+            Tensor::from_array(([inputs.batch, t], inputs.context.clone())).map_err(prepare())?;
+        let target_times =
+            Tensor::from_array(([inputs.batch], inputs.target.clone())).map_err(prepare())?;
+        let queries = inputs
+            .queries
+            .map(|q| Tensor::from_array(([q.len()], q.indices().to_vec())))
+            .transpose()
+            .map_err(RuntimeError::ort("preparing the query indices"))?;
+        let bind = |binding: &mut ort::session::IoBinding| {
+            binding.bind_input("features", &resident.features)?;
+            binding.bind_input("context_times", &context_times)?;
+            binding.bind_input("target_times", &target_times)?;
+            if let Some(projection) = &resident.context_projection {
+                binding.bind_input("context_projection", projection)?;
+            }
+            if let Some(queries) = &queries {
+                binding.bind_input("query_indices", queries)?;
+            }
+            Ok(())
+        };
+        Ok(self.decoder.run_bound(&["gaussians"], bind, read)?)
     }
 
     /// `gaussian_features` [B, N, F] for one batch; `maps` is `[T, P, F]` in encoded order.
@@ -558,6 +617,8 @@ impl Engine {
 /// queries to decode.
 struct DecoderInputs<'a> {
     features: &'a [f32],
+    /// The encoding's tensors on the device, when resident: the decoder binds those.
+    resident: Option<Arc<Resident>>,
     context_projection: Option<&'a [f32]>,
     queries: Option<&'a QuerySubset>,
     shape: [usize; 3],
@@ -575,6 +636,7 @@ impl<'a> DecoderInputs<'a> {
     ) -> Self {
         Self {
             features: encoding.features(),
+            resident: None,
             context_projection,
             queries,
             shape: encoding.shape(),
@@ -624,6 +686,18 @@ impl<'a> DecoderInputs<'a> {
             .map_err(RuntimeError::ort("preparing the context projection"))?;
         Ok(Some(tensor))
     }
+}
+
+/// The device-resident encodings `options` ask for (see `EngineOptions::resident_budget`).
+fn resident_cache(options: &EngineOptions) -> Option<ResidentCache> {
+    let (device, device_id, default) = match options.session.execution_provider {
+        ExecutionProvider::Cpu => (AllocationDevice::CPU, 0, 0),
+        ExecutionProvider::Cuda { device_id } => {
+            (AllocationDevice::CUDA, device_id, DEFAULT_RESIDENT_BUDGET)
+        }
+    };
+    let budget = options.resident_budget.unwrap_or(default);
+    (budget > 0).then(|| ResidentCache::new(budget, device, device_id))
 }
 
 #[cfg(test)]

@@ -21,6 +21,7 @@
 //! | `engine` | encode and decode |
 //! | [`keyframes`] | keyframed decoding: where keyframes go, and the interpolation between them |
 //! | `query_subset` | which queries a decode runs: all, or a checked subset |
+//! | `resident` | device-resident encodings: a clip's decoder inputs kept in the execution provider's memory, bound by every decode |
 //! | `graph` | each ONNX graph's inputs and outputs, checked at load |
 //! | `error` | the crate's error type |
 //!
@@ -37,6 +38,7 @@ mod options;
 pub mod package;
 pub mod preprocess;
 mod query_subset;
+mod resident;
 pub mod time;
 
 pub use c4g_runtime::{
@@ -47,7 +49,8 @@ pub use encoding::{ContextFrame, Encoding};
 pub use engine::Engine;
 pub use error::{EngineError, Result};
 pub use keyframes::{KeyframeStats, KeyframeTrack, Keyframes};
-pub use options::EngineOptions;
+pub use options::{DEFAULT_RESIDENT_BUDGET, EngineOptions};
 pub use package::{Manifest, Package};
 pub use query_subset::QuerySubset;
+pub use resident::ResidentStats;
 pub use time::{NormalizedTimes, TimePolicy};

@@ -20,7 +20,17 @@ pub struct EngineOptions {
     /// materialises every score matrix, `2 · heads · (T·P + N)² · 4` bytes (~5 GB). 0 disables
     /// the limit (only `max_batch` applies). See [`Engine::decode_batch_size`](crate::Engine::decode_batch_size).
     pub decoder_memory_budget: usize,
+    /// Bytes of execution-provider memory for device-resident encodings (`crate::resident`):
+    /// decodes bind a clip's features there instead of copying them on every run. `None`: the
+    /// provider's default ([`DEFAULT_RESIDENT_BUDGET`] on CUDA; off on the CPU, where there is
+    /// no copy to save); `Some(0)`: off; `Some(bytes)`: on, on any provider.
+    pub resident_budget: Option<usize>,
 }
+
+/// The device-resident encodings' budget on a GPU when none is given: room for a few dozen
+/// official-size clips of 16 context frames (features 4096 × 2048 floats, 32 MiB; with the
+/// context projection, 128 MiB each), a small part of a serving GPU's memory.
+pub const DEFAULT_RESIDENT_BUDGET: usize = 4 << 30;
 
 impl Default for EngineOptions {
     fn default() -> Self {
@@ -29,6 +39,7 @@ impl Default for EngineOptions {
             time_policy: None,
             max_batch: 16,
             decoder_memory_budget: 4 << 30,
+            resident_budget: None,
         }
     }
 }

@@ -1,9 +1,10 @@
 //! The scene vocabulary of the C4G service, and what turns scenes into pixels.
 //!
 //! What a decoded moment of a clip *is* ([`GaussianSet`]), what looks at it ([`Camera`]), how a
-//! camera moves ([`trajectory`]), where a point goes ([`tracking`]), how scenes are stored
-//! ([`formats`]), how they become images ([`raster`]), how images are compared ([`metrics`]),
-//! which Gaussians a scene needs ([`pruning`]) and which camera saw a frame of it ([`align`]).
+//! camera moves ([`trajectory`]), where a point goes ([`tracking`]), what lifted features show
+//! ([`features`]), how scenes are stored ([`formats`]), how they become images ([`raster`]), how
+//! images are compared ([`metrics`]), which Gaussians a scene needs ([`pruning`]) and which
+//! camera saw a frame of it ([`align`]).
 //! Nothing here knows about models, ONNX or networks.
 
 /// Camera recovery by photometric alignment: a render's analytic camera Jacobian and the
@@ -13,6 +14,8 @@ pub mod align;
 mod camera;
 /// The crate's one error type.
 mod error;
+/// Feature fields in images: cosine similarity, selection, a fixed PCA colouring, matching.
+pub mod features;
 /// Files and payloads: 3DGS `.ply`, antimatter15 `.splat`, Niantic `.spz`, time series of sets
 /// (a directory, a zip of frames, a fitted `.splatv`), `C4GS` frames, `C4GV` compact streams.
 pub mod formats;

@@ -222,8 +222,9 @@ pub fn observe(
         .collect())
 }
 
-/// The pixel's Gaussians around its median depth (see the module doc), front to back.
-fn surface(weights: &[PixelWeight]) -> Vec<PixelWeight> {
+/// The pixel's Gaussians around its median depth (see the module doc), front to back: the ones a
+/// point anchored there follows, and whose features a click there shows (`crate::features`).
+pub fn surface(weights: &[PixelWeight]) -> Vec<PixelWeight> {
     let alpha: f32 = weights.iter().map(|p| p.weight).sum();
     let mut accumulated = 0.0;
     let Some(median) = weights.iter().find(|p| {
@@ -324,7 +325,6 @@ mod tests {
     #[test]
     fn a_point_moves_and_turns_with_its_gaussians() {
         let cam = camera(Affine3A::IDENTITY);
-        let options = RenderOptions::default();
         let before = wall(2.0, Vec3::ZERO, Quat::IDENTITY);
         let anchor = one(&before, &cam, 40.5, 30.5).unwrap();
         let shift = Vec3::new(0.1, -0.05, 0.2);

@@ -72,6 +72,14 @@ fn set() -> GaussianSet {
     }))
 }
 
+/// `set` with a 2-wide feature vector per Gaussian (C4GS version 2).
+fn with_features(set: &GaussianSet) -> GaussianSet {
+    let values = (0..set.len() * 2).map(|i| i as f32 * 0.25).collect();
+    set.clone()
+        .with_features(c4g_renderer::FeatureBlock::new(2, values).expect("features"))
+        .expect("features")
+}
+
 fn main() {
     let root = std::env::args()
         .nth(1)
@@ -114,6 +122,10 @@ fn main() {
             tagged(
                 2,
                 &c4gs::encode([(0.25, &one)], c4gs::Precision::F16).expect("c4gs"),
+            ),
+            tagged(
+                2,
+                &c4gs::encode([(0.25, &with_features(&one))], c4gs::Precision::F16).expect("c4gs"),
             ),
             tagged(
                 3,
@@ -179,6 +191,11 @@ fn main() {
         (10, "", r#"{"queries":[{"t":0.1,"x":3.5,"y":4.0},{"t":0.0,"x":0.0,"y":63.9}],"times":[0,0.2]}"#.to_owned()),
         (10, "", r#"{"queries":[{"t":0.2,"x":8,"y":8}],"width":16,"height":16,"quality":"fast"}"#.to_owned()),
         (11, "", r#"{"refine_focal":true}"#.to_owned()),
+        (0, "", r#"{"times":[0,0.2],"features":true,"format":"binary"}"#.to_owned()),
+        (1, "", r#"{"t":0.1,"width":16,"height":16,"format":"features_pca"}"#.to_owned()),
+        (10, "", r#"{"queries":[{"t":0.1,"x":3.5,"y":4.0}],"tracker":"features"}"#.to_owned()),
+        (12, "", r#"{"click":{"t":0.1,"x":8.5,"y":8.5},"threshold":0.7,"times":[0,0.2]}"#.to_owned()),
+        (12, "", r#"{"feature":[1,0,0,0],"t":0.2,"width":16,"height":16}"#.to_owned()),
         (3, "max_frames=2&fps=4", String::new()),
         (4, "0", String::new()),
         (5, CLIP_MARK, String::new()),
@@ -304,6 +321,31 @@ fn main() {
                 &pb::RecoverCamerasRequest {
                     clip_id: clip_id.clone(),
                     refine_focal: false,
+                }
+                .encode_to_vec(),
+            ),
+            tagged(
+                11,
+                &pb::SegmentRequest {
+                    clip_id: clip_id.clone(),
+                    selection: Some(pb::segment_request::Selection::Click(pb::SegmentClick {
+                        time: 0.1,
+                        x: 8.5,
+                        y: 8.5,
+                    })),
+                    threshold: Some(0.7),
+                    times: vec![0.0, 0.2],
+                    ..Default::default()
+                }
+                .encode_to_vec(),
+            ),
+            tagged(
+                2,
+                &pb::DecodeRequest {
+                    clip_id: clip_id.clone(),
+                    times: vec![0.1],
+                    features: true,
+                    ..Default::default()
                 }
                 .encode_to_vec(),
             ),

@@ -82,6 +82,12 @@ pub struct Config {
     /// (they stay on disk and reload on their next request).
     #[arg(long, env = "C4G_CACHE_MIB", default_value_t = 1024)]
     pub cache_mib: u64,
+    /// Execution-provider memory for device-resident encodings, in MiB: a clip's features stay
+    /// there and decodes bind them instead of copying them host-to-device each run (least
+    /// recently used clips spill back to host memory, then disk). Unset: 4096 on CUDA, off on
+    /// the CPU (no copy to save); 0: off.
+    #[arg(long, env = "C4G_DEVICE_CACHE_MIB")]
+    pub device_cache_mib: Option<u64>,
     /// Context frames per clip when the upload does not ask for a number.
     #[arg(long, env = "C4G_CONTEXT_FRAMES", default_value_t = 4)]
     pub context_frames: usize,
@@ -387,6 +393,9 @@ impl Config {
                 PolicyArg::Stable => Some(TimePolicy::Stable),
                 PolicyArg::Reference => Some(TimePolicy::Reference),
             },
+            resident_budget: self
+                .device_cache_mib
+                .map(|mib| usize::try_from(mib.saturating_mul(1 << 20)).unwrap_or(usize::MAX)),
             ..EngineOptions::default()
         }
     }

@@ -194,9 +194,10 @@ impl Edge {
         };
         let head = String::from_utf8_lossy(head).replace(CLIP_MARK, &self.clip_id);
         let id = &self.clip_id;
-        // Route 9 is the export and 10 the tracks; every other byte picks among the first nine
-        // routes as it did before those came, so the corpora keep their meaning.
-        let route = if route == 9 || route == 10 {
+        // Routes 9 (export), 10 (tracks), 11 (camera recovery) and 12 (segment) came later;
+        // every other byte picks among the first nine routes as it did before those came, so the
+        // corpora keep their meaning.
+        let route = if (9..=12).contains(&route) {
             route
         } else {
             route % 9
@@ -259,6 +260,12 @@ impl Edge {
                 "application/json",
                 rest,
             ),
+            12 => (
+                Method::POST,
+                format!("/v1/clips/{id}/segment"),
+                "application/json",
+                rest,
+            ),
             _ => (Method::GET, format!("/v1/jobs/{head}"), "", body),
         };
         let (status, answer) = self.call(method, &uri, content_type, body.to_vec());
@@ -294,9 +301,9 @@ impl Edge {
                 Err(_) => bytes.to_vec(),
             }
         }
-        // Methods 9 (Tracks) and 10 (RecoverCameras) came later; every other byte picks as it
-        // did before them.
-        let method = if (9..=10).contains(&method) {
+        // Methods 9 (Tracks), 10 (RecoverCameras) and 11 (Segment) came later; every other byte
+        // picks as it did before them.
+        let method = if (9..=11).contains(&method) {
             method
         } else {
             method % 9
@@ -338,6 +345,10 @@ impl Edge {
                 patched(message, |m: &mut pb::RecoverCamerasRequest| {
                     mark(&mut m.clip_id)
                 }),
+            ),
+            11 => (
+                "c4g.v1.C4G/Segment",
+                patched(message, |m: &mut pb::SegmentRequest| mark(&mut m.clip_id)),
             ),
             _ => ("c4g.v1.Jobs/Fail", message.to_vec()),
         };

@@ -15,6 +15,7 @@ use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::camera::{CameraSpec, InputSpec, IntrinsicsSpec};
+use crate::features::{Click, FeatureRender, SegmentRequest, Selection};
 use crate::image_formats::{ImageFormat, encode_image};
 use crate::intake::cameras::{CameraInput, ClipCameras};
 use crate::intake::{IntakeOptions, Media, MediaKind};
@@ -24,7 +25,7 @@ use crate::recovery::RecoverOptions;
 use crate::service::{PathRequest, Service, ViewRequest};
 use crate::store::ClipRecord;
 use crate::streaming::{STREAM_AHEAD, Spacing, StreamRequest, check_compact, plan_sets};
-use crate::tracking::{TrackQuery, TrackRequest};
+use crate::tracking::{TrackQuery, TrackRequest, Tracker};
 use crate::wire::{self, Precision};
 use crate::{AppState, ServiceError};
 use c4g_renderer::formats::c4gv::EncodeOptions;
@@ -153,6 +154,8 @@ fn image_format(format: i32) -> Result<ImageFormat, ServiceError> {
         Ok(pb::ImageFormat::Unspecified | pb::ImageFormat::Png) => Ok(ImageFormat::Png),
         Ok(pb::ImageFormat::DepthF32) => Ok(ImageFormat::Depth),
         Ok(pb::ImageFormat::AlphaF32) => Ok(ImageFormat::Alpha),
+        Ok(pb::ImageFormat::FeaturesF32) => Ok(ImageFormat::Features),
+        Ok(pb::ImageFormat::FeaturesPcaPng) => Ok(ImageFormat::FeaturesPca),
         Err(_) => Err(ServiceError::invalid(format!(
             "unknown image format {format}"
         ))),
@@ -339,10 +342,16 @@ impl C4g for Grpc {
             request.keyframes.as_ref(),
             request.prune.as_ref(),
         )?;
-        let frames = self
-            .service()?
-            .decode(&request.clip_id, request.times, quality)
-            .await?;
+        let service = self.service()?;
+        let frames = if request.features {
+            service
+                .decode_features(&request.clip_id, request.times, quality)
+                .await?
+        } else {
+            service
+                .decode(&request.clip_id, request.times, quality)
+                .await?
+        };
         Ok(Response::new(pb::DecodeResponse {
             frames: frames
                 .iter()
@@ -433,6 +442,23 @@ impl C4g for Grpc {
             background: background(&request.background)?,
         };
         let quality = quality_spec(request.quality, None, request.prune.as_ref())?;
+        if let Some(render) = FeatureRender::of_format(format) {
+            let features = self
+                .service()?
+                .render_features(&request.clip_id, view, quality, render)
+                .await?;
+            return Ok(Response::new(pb::RenderedImage {
+                time: request.time,
+                width: features.width,
+                height: features.height,
+                format: request.format,
+                data: features.bytes,
+                channels: match render {
+                    FeatureRender::Raw => features.channels as u32,
+                    FeatureRender::Pca => 0,
+                },
+            }));
+        }
         let image = self
             .service()?
             .render_view(&request.clip_id, view, quality)
@@ -443,6 +469,7 @@ impl C4g for Grpc {
             height: image.height,
             format: request.format,
             data: encode_image(&image, format)?,
+            channels: 0,
         }))
     }
 
@@ -455,6 +482,13 @@ impl C4g for Grpc {
         let request = request.into_inner();
         let service = self.service()?.clone();
         let format = image_format(request.format)?;
+        if FeatureRender::of_format(format).is_some() {
+            return Err(ServiceError::invalid(
+                "feature images (IMAGE_FORMAT_FEATURES_F32, IMAGE_FORMAT_FEATURES_PCA_PNG) are \
+                 single views: use Render",
+            )
+            .into());
+        }
         let preset = match request.preset_json.trim() {
             "" => None,
             json => {
@@ -518,6 +552,7 @@ impl C4g for Grpc {
                                 height: image.height,
                                 format: request.format,
                                 data: encode_image(&image, format)?,
+                                channels: 0,
                             })
                         })
                         .await;
@@ -535,7 +570,19 @@ impl C4g for Grpc {
         request: Request<pb::TracksRequest>,
     ) -> Result<Response<pb::TracksResponse>, Status> {
         let request = request.into_inner();
+        let tracker = match pb::Tracker::try_from(request.tracker) {
+            Ok(pb::Tracker::Unspecified | pb::Tracker::Gaussians) => Tracker::Gaussians,
+            Ok(pb::Tracker::Features) => Tracker::Features,
+            Err(_) => {
+                return Err(ServiceError::invalid(format!(
+                    "unknown tracker {}: TRACKER_GAUSSIANS or TRACKER_FEATURES",
+                    request.tracker
+                ))
+                .into());
+            }
+        };
         let track_request = TrackRequest {
+            tracker,
             queries: request.queries.iter().map(track_query).collect(),
             times: (!request.times.is_empty()).then_some(request.times),
             width: request.width,
@@ -551,6 +598,10 @@ impl C4g for Grpc {
             .tracks(&request.clip_id, track_request)
             .await?;
         Ok(Response::new(pb::TracksResponse {
+            tracker: match tracks.tracker {
+                Tracker::Gaussians => pb::Tracker::Gaussians,
+                Tracker::Features => pb::Tracker::Features,
+            } as i32,
             width: tracks.width,
             height: tracks.height,
             times: tracks.times,
@@ -574,8 +625,63 @@ impl C4g for Grpc {
                             visible: p.visible,
                             depth: p.depth,
                             position: p.position.to_vec(),
+                            similarity: p.similarity,
                         })
                         .collect(),
+                })
+                .collect(),
+        }))
+    }
+
+    async fn segment(
+        &self,
+        request: Request<pb::SegmentRequest>,
+    ) -> Result<Response<pb::SegmentResponse>, Status> {
+        use pb::segment_request::Selection as Pick;
+        let request = request.into_inner();
+        let selection = match request.selection {
+            Some(Pick::Click(click)) => Selection::Click(Click {
+                t: click.time,
+                x: click.x,
+                y: click.y,
+            }),
+            Some(Pick::Feature(f)) => Selection::Feature {
+                feature: f.feature,
+                t: f.time,
+            },
+            None => {
+                return Err(ServiceError::invalid(
+                    "SegmentRequest needs its selection: click or feature",
+                )
+                .into());
+            }
+        };
+        let segment_request = SegmentRequest {
+            selection,
+            threshold: request.threshold,
+            times: (!request.times.is_empty()).then_some(request.times),
+            camera: request.camera.map(|c| camera_spec(Some(c))),
+            width: nonzero(request.width),
+            height: nonzero(request.height),
+        };
+        let segment = self
+            .service()?
+            .segment(&request.clip_id, segment_request)
+            .await?;
+        Ok(Response::new(pb::SegmentResponse {
+            width: segment.width,
+            height: segment.height,
+            time: segment.t,
+            threshold: segment.threshold,
+            feature: segment.feature,
+            gaussians: segment.gaussians,
+            masks: segment
+                .masks
+                .into_iter()
+                .map(|m| pb::Mask {
+                    time: m.t,
+                    area: m.area,
+                    counts: m.counts,
                 })
                 .collect(),
         }))

@@ -25,14 +25,20 @@ pub enum ImageFormat {
     Alpha,
     /// H.264 in MP4 (trajectories).
     Mp4,
+    /// Raw little-endian f32 lifted features, `[H, W, F]` (`crate::features`).
+    Features,
+    /// The lifted features coloured by the clip's PCA basis, as an 8-bit RGB PNG.
+    FeaturesPca,
 }
 
 impl ImageFormat {
     /// The HTTP content type.
     pub fn content_type(self) -> &'static str {
         match self {
-            ImageFormat::Png => "image/png",
-            ImageFormat::Depth | ImageFormat::Alpha => "application/octet-stream",
+            ImageFormat::Png | ImageFormat::FeaturesPca => "image/png",
+            ImageFormat::Depth | ImageFormat::Alpha | ImageFormat::Features => {
+                "application/octet-stream"
+            }
             ImageFormat::Mp4 => "video/mp4",
         }
     }
@@ -59,6 +65,11 @@ pub fn encode_image(image: &Image, format: ImageFormat) -> Result<Vec<u8>, Servi
         ImageFormat::Alpha => Ok(le_bytes(&image.alpha)),
         ImageFormat::Mp4 => Err(ServiceError::invalid(
             "mp4 is for trajectories: add a \"trajectory\" (or use png, depth or alpha)",
+        )),
+        // Feature images are single views, made by `crate::features`.
+        ImageFormat::Features | ImageFormat::FeaturesPca => Err(ServiceError::invalid(
+            "feature images (features, features_pca) are single views: ask for one time and \
+             camera, without a trajectory",
         )),
     }
 }

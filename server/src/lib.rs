@@ -17,7 +17,8 @@
 //! | `pruning` | which Gaussians a pruned request keeps: each clip's scene analysis, cached |
 //! | `streaming` | streams of sets over a time range, planned once, decoded ahead of the reader |
 //! | `recovery` | recovered cameras: each context frame's camera by photometric alignment of the model's Gaussians |
-//! | `tracking` | point tracks: query points followed through a clip by the Gaussians that explain them |
+//! | `tracking` | point tracks: query points followed through a clip by the Gaussians that explain them, or by matching their lifted features |
+//! | `features` | the 4D feature field: decodes with lifted features, feature images (raw, and a per-clip PCA colouring), segments |
 //! | `exports` | 4D exports: a time range as a zip of `.ply` or `.spz` files, or a fitted `.splatv` |
 //! | `renderer` | the rasterizer choice |
 //! | `image_formats` | what renders answer with: PNG, raw depth and alpha, MP4 |
@@ -47,6 +48,7 @@ pub mod config;
 mod error;
 mod exports;
 pub mod faults;
+mod features;
 #[cfg(feature = "fuzzing")]
 pub mod fuzzing;
 mod grpc;

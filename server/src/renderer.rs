@@ -77,4 +77,20 @@ impl Renderer {
         };
         Ok(self.inner.render(set, camera, &options)?)
     }
+
+    /// Renders one view with the set's feature vectors composited into its feature channels.
+    pub fn render_features(
+        &self,
+        set: &GaussianSet,
+        camera: &Camera,
+        background: [f32; 3],
+    ) -> Result<Image, ServiceError> {
+        let options = RenderOptions {
+            background,
+            features: true,
+            footprint: self.footprint,
+            ..RenderOptions::default()
+        };
+        Ok(self.inner.render(set, camera, &options)?)
+    }
 }

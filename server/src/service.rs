@@ -22,6 +22,7 @@ use crate::ServiceError;
 use crate::batching::DecodeBatcher;
 use crate::camera::CameraSpec;
 use crate::config::{Config, Limits};
+use crate::features::FeatureField;
 use crate::intake::cameras::{ClipCameras, Parsed};
 use crate::intake::{self, IntakeOptions, IntakeTools, Media};
 use crate::jobs::{self, JobQueue};
@@ -56,6 +57,8 @@ pub struct Service {
     encode_slots: Arc<Semaphore>,
     work: WorkSlots,
     analyses: Analyses,
+    /// The package's feature kind and each clip's feature colouring (`crate::features`).
+    pub(crate) features: FeatureField,
     /// Exact decodes of one clip gathered into shared decoder runs.
     pub(crate) batcher: DecodeBatcher,
 }
@@ -137,6 +140,7 @@ impl Service {
             batch_wait_ms = batcher.wait().as_millis() as u64,
             "service ready"
         );
+        let features = FeatureField::of_package(engine.package().dir());
         Ok(Self {
             engine,
             store,
@@ -149,6 +153,7 @@ impl Service {
             encode_slots: Arc::new(Semaphore::new(config.max_concurrent_encodes.max(1))),
             work,
             analyses: Analyses::default(),
+            features,
             batcher,
         })
     }
@@ -358,6 +363,7 @@ impl Service {
             .engine
             .decode_keyframed_on(encoding, times, keyframes, queries)?;
         metrics::histogram!("c4g_decode_duration_seconds").record(started.elapsed().as_secs_f64());
+        self.record_resident();
         count_sets(stats.exact_decodes, stats.interpolated);
         Ok(times.iter().copied().zip(sets).collect())
     }
@@ -454,6 +460,7 @@ impl Service {
             .engine
             .keyframe_track_on(encoding, times, keyframes, queries)?;
         metrics::histogram!("c4g_decode_duration_seconds").record(started.elapsed().as_secs_f64());
+        self.record_resident();
         count_sets(stats.exact_decodes, 0);
         Ok(track)
     }
@@ -471,6 +478,16 @@ impl Service {
         let interpolated = times.iter().filter(|&&t| track.keyframe(t).is_none());
         count_sets(0, interpolated.count());
         Ok(sets)
+    }
+
+    /// The device-resident encodings' gauges (nothing when residency is off).
+    fn record_resident(&self) {
+        if let Some(stats) = self.engine.resident_stats() {
+            metrics::gauge!("c4g_device_cache_bytes").set(stats.bytes as f64);
+            metrics::gauge!("c4g_device_cache_clips").set(stats.encodings as f64);
+            metrics::counter!("c4g_device_cache_placements_total").absolute(stats.placements);
+            metrics::counter!("c4g_device_cache_spills_total").absolute(stats.spills);
+        }
     }
 
     /// The image size a request asks for, checked against the limits.
@@ -665,10 +682,12 @@ impl Service {
             .collect()
     }
 
-    /// Deletes clip `id`: its record, features and frames, and what pruning measured of it.
+    /// Deletes clip `id`: its record, features and frames, what pruning measured of it and its
+    /// feature colouring.
     pub async fn delete(&self, id: &str) -> Result<(), ServiceError> {
         self.store.delete(id).await?;
         self.analyses.forget(id);
+        self.features.forget(id);
         Ok(())
     }
 
@@ -706,7 +725,7 @@ pub struct Kept {
 
 impl Kept {
     /// The kept Gaussians of `sets`: sets decoded on the kept queries hold nothing else.
-    fn select(
+    pub(crate) fn select(
         &self,
         sets: Vec<(f64, GaussianSet)>,
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
@@ -767,7 +786,7 @@ fn prune(
 }
 
 /// Counts the sets the decoder computed and those interpolated between keyframes.
-fn count_sets(exact: usize, interpolated: usize) {
+pub(crate) fn count_sets(exact: usize, interpolated: usize) {
     for (how, n) in [("exact", exact), ("interpolated", interpolated)] {
         if n > 0 {
             metrics::counter!("c4g_decoded_sets_total", "how" => how).increment(n as u64);
@@ -775,7 +794,7 @@ fn count_sets(exact: usize, interpolated: usize) {
     }
 }
 
-fn check_background(background: [f32; 3]) -> Result<(), ServiceError> {
+pub(crate) fn check_background(background: [f32; 3]) -> Result<(), ServiceError> {
     // The renderer's own check, run before any decoding is spent on the request.
     let options = c4g_renderer::RenderOptions {
         background,

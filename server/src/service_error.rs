@@ -38,6 +38,10 @@ pub enum ServiceError {
     /// Media of a known kind that cannot be read (truncated, corrupt, unusable frames).
     #[error("{0}")]
     UnreadableMedia(String),
+    /// Well-formed, but this model package (or this server) cannot do it: the message says what
+    /// is missing.
+    #[error("{0}")]
+    Unsupported(String),
     /// Every encode slot is taken.
     #[error("every encode slot is busy; retry in {}s", retry_after.as_secs())]
     Busy {
@@ -187,6 +191,7 @@ impl ServiceError {
             Self::TooLarge(_) => K::TooLarge,
             Self::UnsupportedMedia(_) => K::UnsupportedMedia,
             Self::UnreadableMedia(_) => K::UnreadableMedia,
+            Self::Unsupported(_) => K::Unsupported,
             Self::Busy { .. } => K::Busy,
             Self::Overloaded { .. } => K::Overloaded,
             Self::InsufficientStorage(_) => K::InsufficientStorage,

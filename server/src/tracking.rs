@@ -9,11 +9,31 @@
 //! public C4G code);
 //! visibility is a depth test against the render's depth there. The sets are decoded as any
 //! decode is (exact by default, or approximated as `quality` asks), all times in one request.
+//!
+//! A package with a feature decoder offers a second tracker, **feature matching** (`"tracker":
+//! "features"`), which follows what a point looks like in the feature field rather than which
+//! Gaussians carry it:
+//! - the query's feature is the rendered feature image's vector at its pixel at the query time
+//!   (input camera; a pixel showing too little, alpha under
+//!   [`MIN_COVERAGE`](c4g_renderer::tracking::MIN_COVERAGE), anchors nothing);
+//! - at each answered time the point is where the rendered feature image (input camera at that
+//!   time) matches it best: the pixel of largest cosine similarity, refined per axis by a
+//!   parabola through its neighbours (`c4g_renderer::features::best_match`; ties go to the pixel
+//!   nearest the query point); its depth is the render's expected depth there, its 3D point the
+//!   pixel's ray at that depth;
+//! - it is visible when the match is good, similarity at least [`MATCH_SIMILARITY`], and what
+//!   matches lies on the rendered surface: the depth of the pixel's Gaussians weighted by their
+//!   blending weight times their own positive similarity to the query is at most the expected
+//!   depth by the point tracker's occlusion rule (a feature seen only through the front surface's
+//!   gaps, or a blend that no Gaussian there has, is occluded).
 
 use std::sync::Arc;
 
-use c4g_renderer::tracking::{Observation, PointAnchor, anchor, observe};
-use c4g_renderer::{Camera, GaussianSet, RenderOptions};
+use c4g_renderer::features::{best_match_near, cosine};
+use c4g_renderer::tracking::{
+    MIN_COVERAGE, OCCLUSION_ABSOLUTE, OCCLUSION_RELATIVE, Observation, PointAnchor, anchor, observe,
+};
+use c4g_renderer::{Camera, CpuRasterizer, GaussianSet, Image, RenderOptions};
 use serde::{Deserialize, Serialize};
 
 use crate::ServiceError;
@@ -34,9 +54,25 @@ pub struct TrackQuery {
     pub y: f32,
 }
 
+/// The cosine similarity at which a feature-matched point counts as seen.
+pub const MATCH_SIMILARITY: f32 = 0.8;
+
+/// Which tracker follows the points.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Tracker {
+    /// The Gaussians that explain the query pixel carry the point (the default).
+    #[default]
+    Gaussians,
+    /// The point is where the rendered feature field matches its feature best.
+    Features,
+}
+
 /// A track request.
 #[derive(Debug, Clone, Default)]
 pub struct TrackRequest {
+    /// Which tracker follows the points.
+    pub tracker: Tracker,
     /// The points.
     pub queries: Vec<TrackQuery>,
     /// Where to answer (default: the clip's context times).
@@ -64,6 +100,9 @@ pub struct TrackPoint {
     pub depth: f32,
     /// The 3D point in the model's frame (the first context camera's).
     pub position: [f32; 3],
+    /// The feature tracker's: the match's cosine similarity with the query's feature.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub similarity: Option<f32>,
 }
 
 /// One query's track.
@@ -81,6 +120,8 @@ pub struct Track {
 /// The answer.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Tracks {
+    /// The tracker that followed the points.
+    pub tracker: Tracker,
     /// The image size the positions are in.
     pub width: u32,
     /// Likewise.
@@ -114,9 +155,31 @@ impl Service {
         decoded.extend(request.queries.iter().map(|q| q.t));
         decoded.sort_by(f64::total_cmp);
         decoded.dedup();
+        let cameras = self.input_cameras(&record);
+        if request.tracker == Tracker::Features {
+            self.check_features()?;
+            let sets = self.decode_features(id, decoded, request.quality).await?;
+            let queries = request.queries;
+            return self
+                .work(move |service| {
+                    let frames =
+                        FeatureFrames::render(service, &sets, cameras.as_ref(), width, height)?;
+                    let tracks = queries
+                        .iter()
+                        .map(|&query| frames.track(query, &times))
+                        .collect::<Result<_, ServiceError>>()?;
+                    Ok(Tracks {
+                        tracker: Tracker::Features,
+                        width,
+                        height,
+                        times,
+                        tracks,
+                    })
+                })
+                .await;
+        }
         let sets = self.decode(id, decoded, request.quality).await?;
         let queries = request.queries;
-        let cameras = self.input_cameras(&record);
         self.work(move |service| {
             let footprint = service.renderer.footprint();
             let options = RenderOptions {
@@ -179,6 +242,7 @@ impl Service {
                 })
                 .collect();
             Ok(Tracks {
+                tracker: Tracker::Gaussians,
                 width,
                 height,
                 times,
@@ -189,6 +253,129 @@ impl Service {
     }
 }
 
+/// Each decoded time's set, input camera and rendered feature image, for the feature tracker.
+struct FeatureFrames<'a> {
+    frames: Vec<(f64, &'a GaussianSet, Camera, Image)>,
+    options: RenderOptions,
+}
+
+impl<'a> FeatureFrames<'a> {
+    fn render(
+        service: &Service,
+        sets: &'a [(f64, GaussianSet)],
+        cameras: Option<&ClipCameras>,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, ServiceError> {
+        let frames = sets
+            .iter()
+            .map(|(t, set)| {
+                crate::work::stop_if_cancelled()?;
+                let camera = input_camera(cameras, *t, width, height)?;
+                let image = service.renderer.render_features(set, &camera, [0.0; 3])?;
+                Ok((*t, set, camera, image))
+            })
+            .collect::<Result<_, ServiceError>>()?;
+        let options = RenderOptions {
+            footprint: service.renderer.footprint(),
+            ..RenderOptions::default()
+        };
+        Ok(Self { frames, options })
+    }
+
+    fn at(&self, t: f64) -> Result<&(f64, &'a GaussianSet, Camera, Image), ServiceError> {
+        let i = self
+            .frames
+            .binary_search_by(|(s, ..)| s.total_cmp(&t))
+            .map_err(|_| ServiceError::Internal(format!("no set decoded at {t} s")))?;
+        Ok(&self.frames[i])
+    }
+
+    /// `query` followed through `times` by feature matching (the rule is the module's).
+    fn track(&self, query: TrackQuery, times: &[f64]) -> Result<Track, ServiceError> {
+        let (_, _, _, image) = self.at(query.t)?;
+        let Some(feature) = pixel_vector(image, query.x, query.y) else {
+            return Ok(Track {
+                query,
+                anchored: false,
+                points: Vec::new(),
+            });
+        };
+        let points = times
+            .iter()
+            .map(|&t| self.point(t, &feature, query))
+            .collect::<Result<_, ServiceError>>()?;
+        Ok(Track {
+            query,
+            anchored: true,
+            points,
+        })
+    }
+
+    fn point(
+        &self,
+        t: f64,
+        feature: &[f32],
+        query: TrackQuery,
+    ) -> Result<TrackPoint, ServiceError> {
+        let (_, set, camera, image) = self.at(t)?;
+        let Some(found) = best_match_near(image, feature, Some((query.x, query.y)))? else {
+            // Nothing shows at all: the point is not seen, and stays where it was asked.
+            return Ok(TrackPoint {
+                t,
+                x: query.x,
+                y: query.y,
+                visible: false,
+                depth: 0.0,
+                position: [0.0; 3],
+                similarity: None,
+            });
+        };
+        let (i, j) = found.pixel;
+        let p = (j * image.width + i) as usize;
+        let depth = image.expected_depth[p];
+        let k = camera.intrinsics();
+        let ray = glam::Vec3::new((found.x - k.cx) / k.fx, (found.y - k.cy) / k.fy, 1.0);
+        let position = camera.camera_to_world().transform_point3(ray * depth);
+        let weights = CpuRasterizer::new()
+            .pixel_weights(set, camera, &self.options, &[found.pixel])?
+            .pop()
+            .unwrap_or_default();
+        let (mut weighted, mut total) = (0.0f64, 0.0f64);
+        for w in &weights {
+            let row = set.features().and_then(|f| f.row(w.index as usize));
+            let similarity = row.and_then(|r| cosine(r, feature)).unwrap_or(0.0).max(0.0);
+            let weight = f64::from(w.weight) * f64::from(similarity);
+            weighted += weight * f64::from(w.depth);
+            total += weight;
+        }
+        let on_surface = total > 0.0
+            && weighted / total
+                <= f64::from(depth) * (1.0 + f64::from(OCCLUSION_RELATIVE))
+                    + f64::from(OCCLUSION_ABSOLUTE);
+        Ok(TrackPoint {
+            t,
+            x: found.x,
+            y: found.y,
+            visible: found.similarity >= MATCH_SIMILARITY && on_surface,
+            depth,
+            position: position.to_array(),
+            similarity: Some(found.similarity),
+        })
+    }
+}
+
+/// The feature image's vector at the pixel containing `(x, y)`, when the pixel shows enough.
+fn pixel_vector(image: &Image, x: f32, y: f32) -> Option<Vec<f32>> {
+    let features = image.features.as_ref()?;
+    let p = (y.floor() as usize) * image.width as usize + x.floor() as usize;
+    if image.alpha.get(p).is_none_or(|&a| a < MIN_COVERAGE) {
+        return None;
+    }
+    let c = features.channels;
+    features.values.get(p * c..(p + 1) * c).map(<[f32]>::to_vec)
+}
+
 fn track_point(t: f64, seen: Observation) -> TrackPoint {
     TrackPoint {
         t,
@@ -197,6 +384,7 @@ fn track_point(t: f64, seen: Observation) -> TrackPoint {
         visible: seen.visible,
         depth: seen.depth,
         position: seen.position.to_array(),
+        similarity: None,
     }
 }
 

@@ -28,12 +28,12 @@ pub fn binary(
         .map_err(|e| ServiceError::Internal(format!("writing C4GS: {e}")))
 }
 
-/// The JSON form.
+/// The JSON form; a set with lifted features also has `features`, one array per Gaussian.
 pub fn json(frames: &[(f64, GaussianSet)]) -> Value {
     let frames: Vec<Value> = frames
         .iter()
         .map(|(t, set)| {
-            json!({
+            let mut frame = json!({
                 "t": t,
                 "count": set.len(),
                 "means": set.positions(),
@@ -41,16 +41,29 @@ pub fn json(frames: &[(f64, GaussianSet)]) -> Value {
                 "rotations": set.rotations(),
                 "opacities": set.opacities(),
                 "colors": set.colors(),
-            })
+            });
+            if let Some(block) = set.features() {
+                let rows: Vec<&[f32]> = block.values().chunks_exact(block.width()).collect();
+                frame["features"] = json!(rows);
+            }
+            frame
         })
         .collect();
     json!({ "frames": frames })
 }
 
-/// One set as the gRPC message.
+/// One set as the gRPC message (its lifted features, when it has them, packed like the columns).
 pub fn proto(set: &GaussianSet, precision: Precision) -> pb::GaussianSet {
     let [means, scales, rotations, opacities, colors] = c4gs::pack_columns(set, precision);
+    let (feature_width, features) = set.features().map_or((0, Vec::new()), |block| {
+        (
+            block.width() as u32,
+            c4gs::pack_values(block.values(), precision),
+        )
+    });
     pb::GaussianSet {
+        feature_width,
+        features,
         count: set.len() as u32,
         precision: match precision {
             Precision::F32 => pb::Precision::F32,

@@ -286,6 +286,7 @@ fn api_keys_and_grpc_limits_are_enforced_and_the_server_keeps_serving() {
             keyframes: None,
             quality: 0,
             prune: None,
+            features: false,
         };
         let refused = grpc.decode(request()).await.unwrap_err();
         assert_eq!(refused.code(), tonic::Code::Unauthenticated, "{refused:?}");
@@ -312,6 +313,7 @@ fn api_keys_and_grpc_limits_are_enforced_and_the_server_keeps_serving() {
             keyframes: None,
             quality: 0,
             prune: None,
+            features: false,
         });
         oversized
             .metadata_mut()
@@ -372,6 +374,7 @@ fn a_full_work_queue_is_refused_over_rest_and_grpc_with_its_kind_and_the_old_set
                 keyframes: None,
                 quality: 0,
                 prune: None,
+                features: false,
             })
             .await
             .unwrap_err();

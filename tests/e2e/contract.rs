@@ -51,13 +51,16 @@ import schemathesis
 # Schema cannot state. Each operation's description in openapi.json says it in words too.
 STATED_IN_WORDS = [
     (r"POST /v1/clips/\{id\}/(gaussians|render|refine)", 400, r"outside the clip's context span"),
-    (r"POST /v1/clips/\{id\}/(render|refine)", 400, r"invertible|rigid pose|view direction is undefined"),
+    (r"POST /v1/clips/\{id\}/(render|refine|segment)", 400, r"invertible|rigid pose|view direction is undefined"),
     (r"POST /v1/clips/\{id\}/(render|refine)", 400, r"reaches past the focus depth|would reach the subject"),
     (r"POST /v1/clips/\{id\}/render", 400, r"frame count is the number of cameras"),
     (r"POST /v1/clips/\{id\}/render", 413, r"pixels in all"),
     (r"POST /v1/clips/\{id\}/(gaussians|render)", 400, r"make \d+ keyframes"),
     (r"POST /v1/clips/\{id\}/tracks", 400, r"outside the clip's context span|outside the \d+x\d+ image|make \d+ keyframes"),
     (r"POST /v1/clips/\{id\}/tracks", 413, r"times in one request|C4G_MAX_TRACK_QUERIES|pixels in all"),
+    (r"POST /v1/clips/\{id\}/segment", 400, r"outside the clip's context span|outside the \d+x\d+ image|shows nothing to select|the feature has \d+ values|not all zeros"),
+    (r"POST /v1/clips/\{id\}/segment", 413, r"times in one request|pixels in all"),
+    (r"POST /v1/clips/\{id\}/(gaussians|render|tracks|segment)", 422, r"no feature decoder|do not go together: the feature decoder decodes every query"),
     (r"POST /v1/clips/\{id\}/(stream|export)", 400, r"outside the clip's context span|is after end|make \d+ keyframes"),
     (r"POST /v1/clips/\{id\}/(stream|export)", 413, r"sets in one stream|C4G_MAX_EXPORT_MIB|frames in one zip"),
     (r"POST /v1/clips/\{id\}/refine", 400, r"a divisor of that|shape of text_embedding"),

@@ -224,6 +224,7 @@ fn a_real_video_goes_through_upload_decode_render_and_stream_over_http_and_grpc(
                 keyframes: None,
                 quality: 0,
                 prune: None,
+                features: false,
             })
             .await
             .unwrap()
@@ -588,4 +589,60 @@ fn a_full_encode_pool_refuses_at_once_with_retry_after() {
         .send()
         .unwrap();
     assert_eq!(ok.status(), 201);
+}
+
+/// Device-resident encodings asked for on the CPU (`C4G_DEVICE_CACHE_MIB`; off there by
+/// default): decodes bind the clip's features through ONNX Runtime's I/O binding and answer
+/// exactly what a server without them answers; the gauges show the clip resident.
+#[test]
+fn resident_encodings_change_no_answer_and_show_in_the_metrics() {
+    if !ort_available() {
+        return;
+    }
+    let plain = Server::start(&[]);
+    let resident = Server::start(&["--device-cache-mib", "64"]);
+    let client = Client::new();
+    let (frames, times) = synthetic_clip();
+    let upload = |server: &Server| {
+        let response = client
+            .post(server.at("/v1/clips"))
+            .multipart(frames_form(&frames, &times))
+            .send()
+            .unwrap();
+        json_of(response)["id"].as_str().unwrap().to_owned()
+    };
+    let body = json!({"times": [0.1, 0.35, 0.6]});
+    let decode = |server: &Server, id: &str| {
+        json_of(post_json(
+            &client,
+            server.at(&format!("/v1/clips/{id}/gaussians")),
+            body.clone(),
+        ))
+    };
+    let (a, b) = (upload(&plain), upload(&resident));
+    assert_eq!(
+        decode(&plain, &a)["frames"],
+        decode(&resident, &b)["frames"]
+    );
+    decode(&resident, &b);
+    let text = client
+        .get(resident.at("/metrics"))
+        .send()
+        .unwrap()
+        .text()
+        .unwrap();
+    assert_eq!(metric(&text, "c4g_device_cache_clips"), 1.0, "{text}");
+    assert!(metric(&text, "c4g_device_cache_bytes") > 0.0);
+    assert_eq!(metric(&text, "c4g_device_cache_placements_total"), 1.0);
+    let text = client
+        .get(plain.at("/metrics"))
+        .send()
+        .unwrap()
+        .text()
+        .unwrap();
+    assert_eq!(
+        metric(&text, "c4g_device_cache_clips"),
+        0.0,
+        "off on the CPU by default"
+    );
 }

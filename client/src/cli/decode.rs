@@ -132,6 +132,10 @@ pub struct DecodeArgs {
     /// Write the server's bytes here.
     #[arg(short, long)]
     output: Option<PathBuf>,
+    /// Each Gaussian's lifted feature vector too (JSON `features`, binary C4GS version 2, PLY
+    /// `feat_*` properties; a package with a feature decoder only).
+    #[arg(long)]
+    features: bool,
     #[command(flatten)]
     approximation: ApproximationArgs,
 }
@@ -144,21 +148,29 @@ pub async fn run(cx: &Context, args: DecodeArgs) -> anyhow::Result<()> {
         let format = explicit
             .or_else(|| GaussianFormat::from_extension(path))
             .unwrap_or(GaussianFormat::Json);
-        return fetch_to_file(cx, &args.clip, &args.times, format, path, approximation).await;
+        let fetch = Fetch {
+            clip: &args.clip,
+            times: &args.times,
+            format,
+            approximation,
+            features: args.features,
+        };
+        return fetch_to_file(cx, &fetch, path).await;
     }
+    let raw = |format| Fetch {
+        clip: &args.clip,
+        times: &args.times,
+        format,
+        approximation,
+        features: args.features,
+    };
     match explicit {
         // Without a format, a person gets a summary and a script (`--json`) the server's JSON.
-        None if !cx.json => summarise(cx, &args.clip, &args.times, approximation).await,
+        None if !cx.json => {
+            summarise(cx, &args.clip, &args.times, approximation, args.features).await
+        }
         None | Some(GaussianFormat::Json) => {
-            let bytes = cx
-                .client
-                .gaussians_raw_approximated(
-                    &args.clip,
-                    &args.times,
-                    GaussianFormat::Json,
-                    approximation,
-                )
-                .await?;
+            let bytes = raw(GaussianFormat::Json).bytes(cx).await?;
             emit(&String::from_utf8_lossy(&bytes))?;
             if !bytes.ends_with(b"\n") {
                 emit("\n")?;
@@ -169,27 +181,45 @@ pub async fn run(cx: &Context, args: DecodeArgs) -> anyhow::Result<()> {
             if std::io::stdout().is_terminal() {
                 bail!("{format} is binary: write it to a file with -o, or pipe stdout");
             }
-            let bytes = cx
-                .client
-                .gaussians_raw_approximated(&args.clip, &args.times, format, approximation)
-                .await?;
+            let bytes = raw(format).bytes(cx).await?;
             super::emit_bytes(&bytes)
         }
     }
 }
 
+/// One decode whose bytes are written as the server sends them.
+pub(super) struct Fetch<'a> {
+    pub clip: &'a str,
+    pub times: &'a [f64],
+    pub format: GaussianFormat,
+    pub approximation: &'a Approximation,
+    pub features: bool,
+}
+
+impl Fetch<'_> {
+    async fn bytes(&self, cx: &Context) -> anyhow::Result<bytes::Bytes> {
+        let client = &cx.client;
+        let (clip, times, format, approximation) =
+            (self.clip, self.times, self.format, self.approximation);
+        Ok(if self.features {
+            client
+                .gaussians_raw_with_features(clip, times, format, approximation)
+                .await?
+        } else {
+            client
+                .gaussians_raw_approximated(clip, times, format, approximation)
+                .await?
+        })
+    }
+}
+
 pub(super) async fn fetch_to_file(
     cx: &Context,
-    clip: &str,
-    times: &[f64],
-    format: GaussianFormat,
+    fetch: &Fetch<'_>,
     path: &Path,
-    approximation: &Approximation,
 ) -> anyhow::Result<()> {
-    let bytes = cx
-        .client
-        .gaussians_raw_approximated(clip, times, format, approximation)
-        .await?;
+    let (times, format) = (fetch.times, fetch.format);
+    let bytes = fetch.bytes(cx).await?;
     write_file(path, &bytes).await?;
     if cx.json {
         emit_json(&json!({
@@ -215,11 +245,18 @@ async fn summarise(
     clip: &str,
     times: &[f64],
     approximation: &Approximation,
+    features: bool,
 ) -> anyhow::Result<()> {
-    let frames = cx
-        .client
-        .gaussians_approximated(clip, times, Precision::F32, approximation)
-        .await?;
+    let client = &cx.client;
+    let frames = if features {
+        client
+            .gaussians_with_features(clip, times, Precision::F32, approximation)
+            .await?
+    } else {
+        client
+            .gaussians_approximated(clip, times, Precision::F32, approximation)
+            .await?
+    };
     let text: String = frames.iter().map(|f| frame_summary(f) + "\n").collect();
     emit(&text)
 }
@@ -245,6 +282,9 @@ fn frame_summary(frame: &GaussianFrame) -> String {
         point(low),
         point(high)
     ));
+    if let Some(features) = set.features() {
+        line.push_str(&format!("  features of {}", features.width()));
+    }
     line
 }
 

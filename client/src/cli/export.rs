@@ -9,7 +9,7 @@ use c4g_client::{ExportFormat, ExportOptions, GaussianFormat};
 use indicatif::HumanBytes;
 use serde_json::json;
 
-use super::decode::{ApproximationArgs, fetch_to_file};
+use super::decode::{ApproximationArgs, Fetch, fetch_to_file};
 use super::stream::RangeArgs;
 use super::{Context, emit_json, emit_line, write_file};
 
@@ -54,15 +54,14 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
         );
     }
     let approximation = args.approximation.approximation();
-    fetch_to_file(
-        cx,
-        &args.clip,
-        &[time],
+    let fetch = Fetch {
+        clip: &args.clip,
+        times: &[time],
         format,
-        &args.output,
-        &approximation,
-    )
-    .await
+        approximation: &approximation,
+        features: false,
+    };
+    fetch_to_file(cx, &fetch, &args.output).await
 }
 
 async fn export_range(cx: &Context, args: Args, format: ExportFormat) -> anyhow::Result<()> {

@@ -9,6 +9,7 @@ mod info;
 mod jobs;
 mod refine;
 mod render;
+mod segment;
 mod stream;
 mod track;
 mod upload;
@@ -70,6 +71,9 @@ enum Command {
     /// Track points seen in an input frame: where each is at other times, and whether it is
     /// visible there.
     Track(track::Args),
+    /// Select the Gaussians whose lifted feature is like a clicked pixel's (or a given feature),
+    /// and their masks at other times (a package with a feature decoder).
+    Segment(segment::Args),
     /// Refine novel views with the video diffusion model: submit a job, follow it, and download
     /// the refined video.
     Refine(refine::Args),
@@ -104,6 +108,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Render(args) => render::run(&cx, args).await,
         Command::Stream(args) => stream::run(&cx, args).await,
         Command::Track(args) => track::run(&cx, args).await,
+        Command::Segment(args) => segment::run(&cx, args).await,
         Command::Cameras(args) => cameras::run(&cx, args).await,
         Command::Refine(args) => refine::run(&cx, args).await,
         Command::Job(args) => jobs::job(&cx, args).await,

@@ -21,6 +21,10 @@ enum Format {
     Alpha,
     /// H.264 video (trajectories).
     Mp4,
+    /// Raw little-endian f32 lifted features, [H, W, F] (a package with a feature decoder).
+    Features,
+    /// The lifted features coloured by the clip's fixed PCA basis, RGB PNG.
+    FeaturesPca,
 }
 
 impl From<Format> for RenderFormat {
@@ -30,6 +34,8 @@ impl From<Format> for RenderFormat {
             Format::Depth => RenderFormat::Depth,
             Format::Alpha => RenderFormat::Alpha,
             Format::Mp4 => RenderFormat::Mp4,
+            Format::Features => RenderFormat::Features,
+            Format::FeaturesPca => RenderFormat::FeaturesPca,
         }
     }
 }
@@ -131,12 +137,16 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
             "bytes": rendered.data.len(),
             "width": rendered.width,
             "height": rendered.height,
+            "channels": rendered.channels,
             "t": time,
         }));
     }
     let mut details = vec![rendered.content_type.clone()];
     if let (Some(w), Some(h)) = (rendered.width, rendered.height) {
         details.push(format!("{w}x{h}"));
+    }
+    if let Some(c) = rendered.channels {
+        details.push(format!("{c} channels"));
     }
     if let Some(t) = time {
         details.push(format!("t={}", secs(t)));

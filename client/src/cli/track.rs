@@ -2,7 +2,7 @@
 //! trajectories, `POST /v1/clips/{id}/tracks`).
 
 use anyhow::{Context as _, bail};
-use c4g_client::{TrackQuery, TrackRequest};
+use c4g_client::{TrackQuery, TrackRequest, Tracker};
 
 use super::decode::ApproximationArgs;
 use super::{Context, emit, emit_json, secs};
@@ -29,8 +29,20 @@ pub struct Args {
     /// The image size the points are in, WxH (default: the model's input size).
     #[arg(long, value_name = "WxH")]
     size: Option<String>,
+    /// Which tracker follows the points: gaussians (the server's default: the Gaussians that
+    /// explain each point's pixel carry it) or features (the rendered feature field's best match;
+    /// a package with a feature decoder).
+    #[arg(long, value_enum)]
+    tracker: Option<TrackerArg>,
     #[command(flatten)]
     approximation: ApproximationArgs,
+}
+
+/// The trackers of `--tracker`.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum TrackerArg {
+    Gaussians,
+    Features,
 }
 
 pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
@@ -53,6 +65,10 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
         })
         .transpose()?;
     let request = TrackRequest {
+        tracker: args.tracker.map(|t| match t {
+            TrackerArg::Gaussians => Tracker::Gaussians,
+            TrackerArg::Features => Tracker::Features,
+        }),
         queries,
         times: args.times,
         size,
@@ -74,18 +90,25 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
         for p in &track.points {
             let seen = if p.visible { "visible" } else { "hidden" };
             text += &format!(
-                "  t={}  x={:.2}  y={:.2}  depth={:.3}  {seen}\n",
+                "  t={}  x={:.2}  y={:.2}  depth={:.3}  {seen}",
                 secs(p.t),
                 p.x,
                 p.y,
                 p.depth
             );
+            if let Some(s) = p.similarity {
+                text += &format!("  similarity={s:.3}");
+            }
+            text += "\n";
         }
     }
     emit(&text)
 }
 
-fn parse_pair<T: std::str::FromStr>(text: &str, separator: char) -> anyhow::Result<(T, T)> {
+pub(super) fn parse_pair<T: std::str::FromStr>(
+    text: &str,
+    separator: char,
+) -> anyhow::Result<(T, T)> {
     let Some((a, b)) = text.split_once(separator) else {
         bail!("expected two numbers separated by '{separator}'");
     };

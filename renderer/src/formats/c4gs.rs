@@ -14,8 +14,22 @@
 //! | 4 | `u32` N, Gaussians per frame |
 //!
 //! then per frame an `f64` time and the five columns means (N×3), scales (N×3), rotations (N×4,
-//! w x y z), opacities (N), colours (N×3), each value in the precision. Features are not part of
-//! the format.
+//! w x y z), opacities (N), colours (N×3), each value in the precision.
+//!
+//! **Features** (version 2): sets with per-Gaussian feature vectors (the feature-lifting
+//! decoder's) are written as version 2, which is version 1 with one field after the header and
+//! one column after the colours:
+//!
+//! | bytes | field |
+//! |---|---|
+//! | 16 | the header as above, version 2 |
+//! | 4 | `u32` F, floats per feature vector (at least 1) |
+//!
+//! then per frame the time, the five columns and the features (N×F, row i Gaussian i's vector),
+//! in the precision. Sets without features are always written as version 1, byte for byte what
+//! they were before version 2 existed, so a reader of version 1 reads every payload that a client
+//! which never asks for features can get; one that does ask gets version 2, which a version 1
+//! reader refuses by its version (not by a length it cannot explain). This reader reads both.
 //!
 //! The same columns, packed the same way, are the arrays of the gRPC `GaussianSet` message, so
 //! [`pack_columns`] and [`unpack_columns`] serve both.
@@ -32,14 +46,19 @@ use std::str::FromStr;
 use half::f16;
 use serde::{Deserialize, Serialize};
 
-use crate::{GaussianSet, RendererError};
+use crate::{FeatureBlock, GaussianSet, RendererError};
 
 /// The first four bytes.
 pub const MAGIC: [u8; 4] = *b"C4GS";
-/// The version this codec writes and the only one it reads.
+/// The version of payloads without features: what this codec writes for sets without them.
 pub const VERSION: u16 = 1;
-/// Bytes before the first frame.
+/// The version of payloads with features (a feature width after the header, a feature column
+/// after the colours).
+pub const VERSION_FEATURES: u16 = 2;
+/// Bytes before the first frame (version 1; version 2 has [`FEATURE_WIDTH_BYTES`] more).
 pub const HEADER_BYTES: usize = 16;
+/// Bytes of version 2's feature width, after the header.
+pub const FEATURE_WIDTH_BYTES: usize = 4;
 /// Bytes of a frame's time.
 const TIME_BYTES: usize = 8;
 
@@ -135,21 +154,41 @@ impl FromStr for Precision {
     }
 }
 
-/// The `C4GS` bytes of `frames` (time in seconds, set). N is the first set's length.
+/// The `C4GS` bytes of `frames` (time in seconds, set). N is the first set's length; version 2
+/// (with a feature column) when the first set has features, else version 1.
 ///
-/// Fails when the sets differ in length, or when there are more than `u32::MAX` frames or
-/// Gaussians: the header could not describe the payload. (The frames of one clip always share N.)
+/// Fails when the sets differ in length or in their features' presence or width, or when there
+/// are more than `u32::MAX` frames, Gaussians or feature channels: the header could not describe
+/// the payload. (The frames of one clip always share N.)
 pub fn encode<'a>(
     frames: impl IntoIterator<Item = (f64, &'a GaussianSet)>,
     precision: Precision,
 ) -> Result<Vec<u8>, RendererError> {
-    let mut out = Vec::with_capacity(HEADER_BYTES);
+    let mut frames = frames.into_iter().peekable();
+    let width = frames
+        .peek()
+        .and_then(|(_, set)| set.features().map(|f| f.width()));
+    let header_bytes = HEADER_BYTES + width.map_or(0, |_| FEATURE_WIDTH_BYTES);
+    let mut out = Vec::with_capacity(header_bytes);
     out.extend_from_slice(&MAGIC);
-    out.extend_from_slice(&VERSION.to_le_bytes());
+    let version = if width.is_some() {
+        VERSION_FEATURES
+    } else {
+        VERSION
+    };
+    out.extend_from_slice(&version.to_le_bytes());
     out.push(precision.code());
     out.push(0);
     // Frames and N, known once the frames are seen.
     out.extend_from_slice(&[0; 8]);
+    if let Some(width) = width {
+        let width = u32::try_from(width).map_err(|_| {
+            format_error(format!(
+                "C4GS holds at most u32::MAX feature channels; got {width}"
+            ))
+        })?;
+        out.extend_from_slice(&width.to_le_bytes());
+    }
     let (mut written, mut count) = (0usize, None);
     for (time, set) in frames {
         let n = *count.get_or_insert(set.len());
@@ -160,9 +199,21 @@ pub fn encode<'a>(
                 set.len()
             )));
         }
-        out.reserve(TIME_BYTES + n * VALUES_PER_GAUSSIAN * precision.value_bytes());
+        let features = set.features();
+        if features.map(|f| f.width()) != width {
+            return Err(format_error(format!(
+                "frame {written} has features of width {:?}; the first has {width:?}: one C4GS \
+                 payload holds sets with features of one width, or none",
+                features.map(|f| f.width())
+            )));
+        }
+        let values = VALUES_PER_GAUSSIAN + width.unwrap_or(0);
+        out.reserve(TIME_BYTES + n * values * precision.value_bytes());
         out.extend_from_slice(&time.to_le_bytes());
         push_columns(&mut out, set, precision);
+        if let Some(block) = features {
+            precision.push(&mut out, block.values().iter().copied());
+        }
         written += 1;
     }
     let header_u32 = |n: usize, what: &str| {
@@ -189,9 +240,9 @@ pub fn decode(bytes: &[u8]) -> Result<Vec<(f64, GaussianSet)>, RendererError> {
         )));
     }
     let version = u16::from_le_bytes([header[4], header[5]]);
-    if version != VERSION {
+    if version != VERSION && version != VERSION_FEATURES {
         return Err(format_error(format!(
-            "C4GS version {version}; this reader reads version {VERSION} only"
+            "C4GS version {version}; this reader reads versions {VERSION} and {VERSION_FEATURES}"
         )));
     }
     let precision = Precision::from_code(header[6])
@@ -199,29 +250,56 @@ pub fn decode(bytes: &[u8]) -> Result<Vec<(f64, GaussianSet)>, RendererError> {
     // header[7] is reserved.
     let frames = u32::from_le_bytes([header[8], header[9], header[10], header[11]]) as usize;
     let count = u32::from_le_bytes([header[12], header[13], header[14], header[15]]) as usize;
+    let (width, header_bytes) = if version == VERSION_FEATURES {
+        let field = bytes
+            .get(HEADER_BYTES..HEADER_BYTES + FEATURE_WIDTH_BYTES)
+            .ok_or_else(|| {
+                format_error(format!(
+                    "a C4GS version 2 payload has its feature width after the header; got {} \
+                     bytes",
+                    bytes.len()
+                ))
+            })?;
+        let width = u32::from_le_bytes([field[0], field[1], field[2], field[3]]) as usize;
+        if width == 0 {
+            return Err(format_error(
+                "a C4GS version 2 payload's feature width is at least 1; got 0".to_owned(),
+            ));
+        }
+        (width, HEADER_BYTES + FEATURE_WIDTH_BYTES)
+    } else {
+        (0, HEADER_BYTES)
+    };
 
-    let frame_bytes = count
-        .checked_mul(VALUES_PER_GAUSSIAN * precision.value_bytes())
+    let frame_bytes = width
+        .checked_add(VALUES_PER_GAUSSIAN)
+        .and_then(|values| values.checked_mul(precision.value_bytes()))
+        .and_then(|b| b.checked_mul(count))
         .and_then(|b| b.checked_add(TIME_BYTES));
     let expected = frame_bytes
         .and_then(|b| b.checked_mul(frames))
-        .and_then(|b| b.checked_add(HEADER_BYTES));
+        .and_then(|b| b.checked_add(header_bytes));
     let (Some(frame_bytes), Some(expected)) = (frame_bytes, expected) else {
         return Err(format_error(format!(
             "C4GS header claims {frames} frames of {count} Gaussians: too large"
         )));
     };
     if bytes.len() != expected {
+        let with = if width > 0 {
+            format!(" with {width} feature channels")
+        } else {
+            String::new()
+        };
         return Err(format_error(format!(
-            "C4GS payload of {frames} frames of {count} {precision} Gaussians needs {expected} \
-             bytes; got {}",
+            "C4GS payload of {frames} frames of {count} {precision} Gaussians{with} needs \
+             {expected} bytes; got {}",
             bytes.len()
         )));
     }
 
     // The length matched, so every allocation below is bounded by the payload's size.
     let mut out = Vec::with_capacity(frames);
-    for frame in bytes[HEADER_BYTES..].chunks_exact(frame_bytes) {
+    for frame in bytes[header_bytes..].chunks_exact(frame_bytes) {
         let (time, mut rest) = frame.split_at(TIME_BYTES);
         let mut time_bytes = [0; TIME_BYTES];
         time_bytes.copy_from_slice(time);
@@ -230,10 +308,15 @@ pub fn decode(bytes: &[u8]) -> Result<Vec<(f64, GaussianSet)>, RendererError> {
             rest = tail;
             column
         });
-        out.push((
-            f64::from_le_bytes(time_bytes),
-            unpack_columns(count, precision, columns)?,
-        ));
+        let mut set = unpack_columns(count, precision, columns)?;
+        if width > 0 {
+            let values = rest
+                .chunks_exact(precision.value_bytes())
+                .map(|v| precision.read(v))
+                .collect();
+            set = set.with_features(FeatureBlock::new(width, values)?)?;
+        }
+        out.push((f64::from_le_bytes(time_bytes), set));
     }
     Ok(out)
 }
@@ -265,6 +348,25 @@ pub fn pack_columns(set: &GaussianSet, precision: Precision) -> [Vec<u8>; 5] {
         column(1, &mut set.opacities().iter().copied()),
         column(3, &mut set.colors().iter().flatten().copied()),
     ]
+}
+
+/// `values` packed little endian in `precision`, as a column is (the proto's feature vectors).
+pub fn pack_values(values: &[f32], precision: Precision) -> Vec<u8> {
+    let mut out = Vec::with_capacity(values.len() * precision.value_bytes());
+    precision.push(&mut out, values.iter().copied());
+    out
+}
+
+/// Values packed by [`pack_values`], widened to `f32`; `None` when the bytes are not a whole
+/// number of values.
+pub fn unpack_values(bytes: &[u8], precision: Precision) -> Option<Vec<f32>> {
+    let size = precision.value_bytes();
+    bytes.len().is_multiple_of(size).then(|| {
+        bytes
+            .chunks_exact(size)
+            .map(|v| precision.read(v))
+            .collect()
+    })
 }
 
 /// Appends the five columns of `set` to `out`, as [`pack_columns`] packs them.
@@ -381,9 +483,9 @@ mod tests {
         let mut bytes = encode([(0.5, &set)], Precision::F32).unwrap();
         bytes[7] = 9;
         assert_eq!(decode(&bytes).unwrap(), [(0.5, set)]);
-        bytes[4] = 2;
+        bytes[4] = 3;
         let err = decode(&bytes).unwrap_err().to_string();
-        assert!(err.contains("version 2"), "{err}");
+        assert!(err.contains("version 3"), "{err}");
     }
 
     #[test]
@@ -413,6 +515,47 @@ mod tests {
         back.validate().unwrap();
         assert_eq!(back.positions()[0], [65504.0, -65504.0, 3.0]);
         assert_eq!(back.scales()[0], [65504.0, 0.0, 0.5]);
+    }
+
+    #[test]
+    fn features_make_version_2_with_a_width_and_a_column_after_the_colours() {
+        let plain = set();
+        let with = plain
+            .clone()
+            .with_features(FeatureBlock::new(2, vec![0.5, -1.5]).unwrap())
+            .unwrap();
+        let bytes = encode([(0.5, &with), (0.75, &with)], Precision::F32).unwrap();
+        assert_eq!(u16::from_le_bytes([bytes[4], bytes[5]]), 2);
+        assert_eq!(u32::from_le_bytes(bytes[16..20].try_into().unwrap()), 2);
+        assert_eq!(f64::from_le_bytes(bytes[20..28].try_into().unwrap()), 0.5);
+        // The five columns as version 1 has them, then the features.
+        assert_eq!(
+            &bytes[28..28 + 14 * 4],
+            &encode([(0.5, &plain)], Precision::F32).unwrap()[24..]
+        );
+        let tail: Vec<f32> = bytes[28 + 14 * 4..28 + 16 * 4]
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect();
+        assert_eq!(tail, [0.5, -1.5]);
+        assert_eq!(bytes.len(), 20 + 2 * (8 + 16 * 4));
+        assert_eq!(
+            decode(&bytes).unwrap(),
+            [(0.5, with.clone()), (0.75, with.clone())]
+        );
+        let half = decode(&encode([(0.0, &with)], Precision::F16).unwrap()).unwrap();
+        assert_eq!(half[0].1.features(), with.features());
+        // Without features: version 1, byte for byte.
+        assert_eq!(encode([(0.5, &plain)], Precision::F32).unwrap()[4], 1);
+        // Mixed sets cannot share a payload, and a truncated one says what it needed.
+        assert!(encode([(0.0, &with), (1.0, &plain)], Precision::F32).is_err());
+        assert!(encode([(0.0, &plain), (1.0, &with)], Precision::F32).is_err());
+        let err = decode(&bytes[..bytes.len() - 1]).unwrap_err().to_string();
+        assert!(err.contains("with 2 feature channels"), "{err}");
+        assert!(decode(&bytes[..18]).is_err());
+        let mut zero = bytes.clone();
+        zero[16..20].copy_from_slice(&0u32.to_le_bytes());
+        assert!(decode(&zero).is_err());
     }
 
     #[test]

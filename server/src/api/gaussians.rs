@@ -1,5 +1,6 @@
 //! `POST /v1/clips/{id}/gaussians`: the Gaussians at one or more times, as JSON, the packed
-//! binary format, `.ply` or `.splat`.
+//! binary format, `.ply` or `.splat`; with `"features": true`, each Gaussian's lifted feature
+//! vector too (JSON `features`, `C4GS` version 2, `.ply` `feat_*` properties).
 
 use axum::Json;
 use axum::extract::State;
@@ -29,6 +30,9 @@ pub struct GaussiansRequest {
     keyframes: Option<KeyframesSpec>,
     /// Drop the Gaussians that change nothing visible (default: the preset's).
     prune: Option<PruneSpec>,
+    /// Each Gaussian's lifted feature vector too (a package with a feature decoder only).
+    #[serde(default)]
+    features: bool,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
@@ -84,12 +88,22 @@ pub async fn decode(
             "ply and splat hold one set: ask for one time (or use json or binary)",
         ));
     }
+    if request.features && format == GaussianFormat::Splat {
+        return Err(ServiceError::invalid(
+            "the .splat format has no room for features: ask for json, binary or ply with \
+             \"features\": true",
+        ));
+    }
     let quality = QualitySpec {
         preset: request.quality,
         keyframes: request.keyframes,
         prune: request.prune,
     };
-    let frames = service.decode(&id, times, quality).await?;
+    let frames = if request.features {
+        service.decode_features(&id, times, quality).await?
+    } else {
+        service.decode(&id, times, quality).await?
+    };
     Ok(match format {
         GaussianFormat::Json => Json(wire::json(&frames)).into_response(),
         GaussianFormat::Binary => (

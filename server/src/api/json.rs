@@ -198,7 +198,12 @@ pub fn check_body(body: &Value, max_times: usize) -> Result<(), ServiceError> {
             )));
         }
     }
-    for name in ["background", "text_embedding", "negative_embedding"] {
+    for name in [
+        "background",
+        "text_embedding",
+        "negative_embedding",
+        "feature",
+    ] {
         if let Some(Value::Array(items)) = body.get(name) {
             for (i, v) in items.iter().enumerate() {
                 within(Some(v), &format!("{name}[{i}]"), -FLOAT_BOUND, FLOAT_BOUND)?;

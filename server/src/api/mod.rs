@@ -10,6 +10,7 @@ mod jobs;
 mod json;
 pub(crate) mod models;
 mod render;
+mod segment;
 mod stream;
 mod tracks;
 mod viewer;
@@ -39,6 +40,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/clips/{id}/stream", post(stream::stream))
         .route("/v1/clips/{id}/export", post(export::export))
         .route("/v1/clips/{id}/tracks", post(tracks::tracks))
+        .route("/v1/clips/{id}/segment", post(segment::segment))
         .route("/v1/clips/{id}/cameras/recover", post(cameras::recover))
         .route("/v1/clips/{id}/refine", post(jobs::submit))
         .route("/v1/jobs", get(jobs::list))

@@ -1,5 +1,6 @@
-//! `POST /v1/clips/{id}/render`: one camera at one time (PNG, raw depth or alpha), or a camera
-//! trajectory over a time range (MP4).
+//! `POST /v1/clips/{id}/render`: one camera at one time (PNG, raw depth or alpha, or a feature
+//! image: raw lifted features or their PCA colouring, `crate::features`), or a camera trajectory
+//! over a time range (MP4).
 
 use axum::extract::State;
 use axum::http::{HeaderName, HeaderValue, header};
@@ -10,6 +11,7 @@ use serde_json::Value;
 
 use super::json::{self, ClipId, JsonBody};
 use crate::camera::CameraSpec;
+use crate::features::FeatureRender;
 use crate::image_formats::{ImageFormat, encode_image, encode_mp4, to_rgb8};
 use crate::keyframes::KeyframesSpec;
 use crate::quality::{Preset, PruneSpec, QualitySpec};
@@ -84,6 +86,21 @@ pub async fn render(
             background: request.background,
         };
         let t = view.t;
+        if let Some(render) = FeatureRender::of_format(format) {
+            let features = service.render_features(&id, view, quality, render).await?;
+            let mut response = with_headers(
+                format,
+                features.bytes,
+                features.width,
+                features.height,
+                Some(t),
+            );
+            response.headers_mut().insert(
+                HeaderName::from_static("x-c4g-channels"),
+                HeaderValue::from(features.channels),
+            );
+            return Ok(response);
+        }
         let image = service.render_view(&id, view, quality).await?;
         let bytes = encode_image(&image, format)?;
         return Ok(with_headers(

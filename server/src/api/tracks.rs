@@ -1,5 +1,5 @@
-//! `POST /v1/clips/{id}/tracks`: where query points seen in the input frames go at other times
-//! (`crate::tracking` says how).
+//! `POST /v1/clips/{id}/tracks`: where query points seen in the input frames go at other times,
+//! followed by their Gaussians or by feature matching (`crate::tracking` says how).
 
 use axum::Json;
 use axum::extract::State;
@@ -9,7 +9,7 @@ use serde_json::Value;
 use super::json::{self, ClipId, JsonBody};
 use crate::keyframes::KeyframesSpec;
 use crate::quality::{Preset, PruneSpec, QualitySpec};
-use crate::tracking::{TrackQuery, TrackRequest, Tracks};
+use crate::tracking::{TrackQuery, TrackRequest, Tracker, Tracks};
 use crate::{AppState, ServiceError};
 
 #[derive(Debug, Deserialize)]
@@ -23,6 +23,9 @@ pub struct TracksRequest {
     quality: Option<Preset>,
     keyframes: Option<KeyframesSpec>,
     prune: Option<PruneSpec>,
+    /// Which tracker follows the points (default: the Gaussians').
+    #[serde(default)]
+    tracker: Tracker,
 }
 
 pub async fn tracks(
@@ -34,6 +37,7 @@ pub async fn tracks(
     json::check_body(&body, service.limits.max_times)?;
     let request: TracksRequest = json::typed(body)?;
     let request = TrackRequest {
+        tracker: request.tracker,
         queries: request.queries,
         times: request.times,
         width: request.width,

@@ -39,6 +39,14 @@ class ImageFormat(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     IMAGE_FORMAT_PNG: _ClassVar[ImageFormat]
     IMAGE_FORMAT_DEPTH_F32: _ClassVar[ImageFormat]
     IMAGE_FORMAT_ALPHA_F32: _ClassVar[ImageFormat]
+    IMAGE_FORMAT_FEATURES_F32: _ClassVar[ImageFormat]
+    IMAGE_FORMAT_FEATURES_PCA_PNG: _ClassVar[ImageFormat]
+
+class Tracker(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    TRACKER_UNSPECIFIED: _ClassVar[Tracker]
+    TRACKER_GAUSSIANS: _ClassVar[Tracker]
+    TRACKER_FEATURES: _ClassVar[Tracker]
 MEDIA_KIND_UNSPECIFIED: MediaKind
 MEDIA_KIND_VIDEO: MediaKind
 MEDIA_KIND_ZIP: MediaKind
@@ -57,6 +65,11 @@ IMAGE_FORMAT_UNSPECIFIED: ImageFormat
 IMAGE_FORMAT_PNG: ImageFormat
 IMAGE_FORMAT_DEPTH_F32: ImageFormat
 IMAGE_FORMAT_ALPHA_F32: ImageFormat
+IMAGE_FORMAT_FEATURES_F32: ImageFormat
+IMAGE_FORMAT_FEATURES_PCA_PNG: ImageFormat
+TRACKER_UNSPECIFIED: Tracker
+TRACKER_GAUSSIANS: Tracker
+TRACKER_FEATURES: Tracker
 
 class UploadRequest(_message.Message):
     __slots__ = ("header", "chunk")
@@ -195,7 +208,7 @@ class DeleteClipResponse(_message.Message):
     def __init__(self) -> None: ...
 
 class GaussianSet(_message.Message):
-    __slots__ = ("count", "precision", "means", "scales", "rotations", "opacities", "colors")
+    __slots__ = ("count", "precision", "means", "scales", "rotations", "opacities", "colors", "feature_width", "features")
     COUNT_FIELD_NUMBER: _ClassVar[int]
     PRECISION_FIELD_NUMBER: _ClassVar[int]
     MEANS_FIELD_NUMBER: _ClassVar[int]
@@ -203,6 +216,8 @@ class GaussianSet(_message.Message):
     ROTATIONS_FIELD_NUMBER: _ClassVar[int]
     OPACITIES_FIELD_NUMBER: _ClassVar[int]
     COLORS_FIELD_NUMBER: _ClassVar[int]
+    FEATURE_WIDTH_FIELD_NUMBER: _ClassVar[int]
+    FEATURES_FIELD_NUMBER: _ClassVar[int]
     count: int
     precision: Precision
     means: bytes
@@ -210,23 +225,27 @@ class GaussianSet(_message.Message):
     rotations: bytes
     opacities: bytes
     colors: bytes
-    def __init__(self, count: _Optional[int] = ..., precision: _Optional[_Union[Precision, str]] = ..., means: _Optional[bytes] = ..., scales: _Optional[bytes] = ..., rotations: _Optional[bytes] = ..., opacities: _Optional[bytes] = ..., colors: _Optional[bytes] = ...) -> None: ...
+    feature_width: int
+    features: bytes
+    def __init__(self, count: _Optional[int] = ..., precision: _Optional[_Union[Precision, str]] = ..., means: _Optional[bytes] = ..., scales: _Optional[bytes] = ..., rotations: _Optional[bytes] = ..., opacities: _Optional[bytes] = ..., colors: _Optional[bytes] = ..., feature_width: _Optional[int] = ..., features: _Optional[bytes] = ...) -> None: ...
 
 class DecodeRequest(_message.Message):
-    __slots__ = ("clip_id", "times", "precision", "keyframes", "quality", "prune")
+    __slots__ = ("clip_id", "times", "precision", "keyframes", "quality", "prune", "features")
     CLIP_ID_FIELD_NUMBER: _ClassVar[int]
     TIMES_FIELD_NUMBER: _ClassVar[int]
     PRECISION_FIELD_NUMBER: _ClassVar[int]
     KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
     QUALITY_FIELD_NUMBER: _ClassVar[int]
     PRUNE_FIELD_NUMBER: _ClassVar[int]
+    FEATURES_FIELD_NUMBER: _ClassVar[int]
     clip_id: str
     times: _containers.RepeatedScalarFieldContainer[float]
     precision: Precision
     keyframes: Keyframes
     quality: Quality
     prune: Prune
-    def __init__(self, clip_id: _Optional[str] = ..., times: _Optional[_Iterable[float]] = ..., precision: _Optional[_Union[Precision, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ...) -> None: ...
+    features: bool
+    def __init__(self, clip_id: _Optional[str] = ..., times: _Optional[_Iterable[float]] = ..., precision: _Optional[_Union[Precision, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ..., features: _Optional[bool] = ...) -> None: ...
 
 class Prune(_message.Message):
     __slots__ = ("contribution_px", "opacity", "drop_queries")
@@ -395,21 +414,23 @@ class RenderTrajectoryRequest(_message.Message):
     def __init__(self, clip_id: _Optional[str] = ..., start: _Optional[float] = ..., end: _Optional[float] = ..., frames: _Optional[int] = ..., preset_json: _Optional[str] = ..., cameras: _Optional[_Iterable[_Union[Camera, _Mapping]]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., camera: _Optional[_Union[Camera, _Mapping]] = ..., background: _Optional[_Iterable[float]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ...) -> None: ...
 
 class RenderedImage(_message.Message):
-    __slots__ = ("time", "width", "height", "format", "data")
+    __slots__ = ("time", "width", "height", "format", "data", "channels")
     TIME_FIELD_NUMBER: _ClassVar[int]
     WIDTH_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
     FORMAT_FIELD_NUMBER: _ClassVar[int]
     DATA_FIELD_NUMBER: _ClassVar[int]
+    CHANNELS_FIELD_NUMBER: _ClassVar[int]
     time: float
     width: int
     height: int
     format: ImageFormat
     data: bytes
-    def __init__(self, time: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., data: _Optional[bytes] = ...) -> None: ...
+    channels: int
+    def __init__(self, time: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., data: _Optional[bytes] = ..., channels: _Optional[int] = ...) -> None: ...
 
 class TracksRequest(_message.Message):
-    __slots__ = ("clip_id", "queries", "times", "width", "height", "quality", "keyframes", "prune")
+    __slots__ = ("clip_id", "queries", "times", "width", "height", "quality", "keyframes", "prune", "tracker")
     CLIP_ID_FIELD_NUMBER: _ClassVar[int]
     QUERIES_FIELD_NUMBER: _ClassVar[int]
     TIMES_FIELD_NUMBER: _ClassVar[int]
@@ -418,6 +439,7 @@ class TracksRequest(_message.Message):
     QUALITY_FIELD_NUMBER: _ClassVar[int]
     KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
     PRUNE_FIELD_NUMBER: _ClassVar[int]
+    TRACKER_FIELD_NUMBER: _ClassVar[int]
     clip_id: str
     queries: _containers.RepeatedCompositeFieldContainer[TrackQuery]
     times: _containers.RepeatedScalarFieldContainer[float]
@@ -426,7 +448,8 @@ class TracksRequest(_message.Message):
     quality: Quality
     keyframes: Keyframes
     prune: Prune
-    def __init__(self, clip_id: _Optional[str] = ..., queries: _Optional[_Iterable[_Union[TrackQuery, _Mapping]]] = ..., times: _Optional[_Iterable[float]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., quality: _Optional[_Union[Quality, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ...) -> None: ...
+    tracker: Tracker
+    def __init__(self, clip_id: _Optional[str] = ..., queries: _Optional[_Iterable[_Union[TrackQuery, _Mapping]]] = ..., times: _Optional[_Iterable[float]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., quality: _Optional[_Union[Quality, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ..., tracker: _Optional[_Union[Tracker, str]] = ...) -> None: ...
 
 class TrackQuery(_message.Message):
     __slots__ = ("time", "x", "y")
@@ -439,16 +462,18 @@ class TrackQuery(_message.Message):
     def __init__(self, time: _Optional[float] = ..., x: _Optional[float] = ..., y: _Optional[float] = ...) -> None: ...
 
 class TracksResponse(_message.Message):
-    __slots__ = ("width", "height", "times", "tracks")
+    __slots__ = ("width", "height", "times", "tracks", "tracker")
     WIDTH_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
     TIMES_FIELD_NUMBER: _ClassVar[int]
     TRACKS_FIELD_NUMBER: _ClassVar[int]
+    TRACKER_FIELD_NUMBER: _ClassVar[int]
     width: int
     height: int
     times: _containers.RepeatedScalarFieldContainer[float]
     tracks: _containers.RepeatedCompositeFieldContainer[Track]
-    def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., times: _Optional[_Iterable[float]] = ..., tracks: _Optional[_Iterable[_Union[Track, _Mapping]]] = ...) -> None: ...
+    tracker: Tracker
+    def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., times: _Optional[_Iterable[float]] = ..., tracks: _Optional[_Iterable[_Union[Track, _Mapping]]] = ..., tracker: _Optional[_Union[Tracker, str]] = ...) -> None: ...
 
 class Track(_message.Message):
     __slots__ = ("query", "anchored", "points")
@@ -461,20 +486,88 @@ class Track(_message.Message):
     def __init__(self, query: _Optional[_Union[TrackQuery, _Mapping]] = ..., anchored: _Optional[bool] = ..., points: _Optional[_Iterable[_Union[TrackPoint, _Mapping]]] = ...) -> None: ...
 
 class TrackPoint(_message.Message):
-    __slots__ = ("time", "x", "y", "visible", "depth", "position")
+    __slots__ = ("time", "x", "y", "visible", "depth", "position", "similarity")
     TIME_FIELD_NUMBER: _ClassVar[int]
     X_FIELD_NUMBER: _ClassVar[int]
     Y_FIELD_NUMBER: _ClassVar[int]
     VISIBLE_FIELD_NUMBER: _ClassVar[int]
     DEPTH_FIELD_NUMBER: _ClassVar[int]
     POSITION_FIELD_NUMBER: _ClassVar[int]
+    SIMILARITY_FIELD_NUMBER: _ClassVar[int]
     time: float
     x: float
     y: float
     visible: bool
     depth: float
     position: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, time: _Optional[float] = ..., x: _Optional[float] = ..., y: _Optional[float] = ..., visible: _Optional[bool] = ..., depth: _Optional[float] = ..., position: _Optional[_Iterable[float]] = ...) -> None: ...
+    similarity: float
+    def __init__(self, time: _Optional[float] = ..., x: _Optional[float] = ..., y: _Optional[float] = ..., visible: _Optional[bool] = ..., depth: _Optional[float] = ..., position: _Optional[_Iterable[float]] = ..., similarity: _Optional[float] = ...) -> None: ...
+
+class SegmentRequest(_message.Message):
+    __slots__ = ("clip_id", "click", "feature", "threshold", "times", "camera", "width", "height")
+    CLIP_ID_FIELD_NUMBER: _ClassVar[int]
+    CLICK_FIELD_NUMBER: _ClassVar[int]
+    FEATURE_FIELD_NUMBER: _ClassVar[int]
+    THRESHOLD_FIELD_NUMBER: _ClassVar[int]
+    TIMES_FIELD_NUMBER: _ClassVar[int]
+    CAMERA_FIELD_NUMBER: _ClassVar[int]
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    clip_id: str
+    click: SegmentClick
+    feature: FeatureSelection
+    threshold: float
+    times: _containers.RepeatedScalarFieldContainer[float]
+    camera: Camera
+    width: int
+    height: int
+    def __init__(self, clip_id: _Optional[str] = ..., click: _Optional[_Union[SegmentClick, _Mapping]] = ..., feature: _Optional[_Union[FeatureSelection, _Mapping]] = ..., threshold: _Optional[float] = ..., times: _Optional[_Iterable[float]] = ..., camera: _Optional[_Union[Camera, _Mapping]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ...) -> None: ...
+
+class SegmentClick(_message.Message):
+    __slots__ = ("time", "x", "y")
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    X_FIELD_NUMBER: _ClassVar[int]
+    Y_FIELD_NUMBER: _ClassVar[int]
+    time: float
+    x: float
+    y: float
+    def __init__(self, time: _Optional[float] = ..., x: _Optional[float] = ..., y: _Optional[float] = ...) -> None: ...
+
+class FeatureSelection(_message.Message):
+    __slots__ = ("feature", "time")
+    FEATURE_FIELD_NUMBER: _ClassVar[int]
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    feature: _containers.RepeatedScalarFieldContainer[float]
+    time: float
+    def __init__(self, feature: _Optional[_Iterable[float]] = ..., time: _Optional[float] = ...) -> None: ...
+
+class SegmentResponse(_message.Message):
+    __slots__ = ("width", "height", "time", "threshold", "feature", "gaussians", "masks")
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    THRESHOLD_FIELD_NUMBER: _ClassVar[int]
+    FEATURE_FIELD_NUMBER: _ClassVar[int]
+    GAUSSIANS_FIELD_NUMBER: _ClassVar[int]
+    MASKS_FIELD_NUMBER: _ClassVar[int]
+    width: int
+    height: int
+    time: float
+    threshold: float
+    feature: _containers.RepeatedScalarFieldContainer[float]
+    gaussians: _containers.RepeatedScalarFieldContainer[int]
+    masks: _containers.RepeatedCompositeFieldContainer[Mask]
+    def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., time: _Optional[float] = ..., threshold: _Optional[float] = ..., feature: _Optional[_Iterable[float]] = ..., gaussians: _Optional[_Iterable[int]] = ..., masks: _Optional[_Iterable[_Union[Mask, _Mapping]]] = ...) -> None: ...
+
+class Mask(_message.Message):
+    __slots__ = ("time", "area", "counts")
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    AREA_FIELD_NUMBER: _ClassVar[int]
+    COUNTS_FIELD_NUMBER: _ClassVar[int]
+    time: float
+    area: int
+    counts: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, time: _Optional[float] = ..., area: _Optional[int] = ..., counts: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class RecoverCamerasRequest(_message.Message):
     __slots__ = ("clip_id", "refine_focal")
