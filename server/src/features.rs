@@ -377,14 +377,7 @@ impl Service {
         render: FeatureRender,
     ) -> Result<FeatureView, ServiceError> {
         let record = self.store.get_or_fetch(id).await?;
-        self.check_times(&record, &[view.t])?;
-        let (w, h) = self.image_size(view.width, view.height)?;
-        let cameras = self.input_cameras(&record);
-        let camera = view
-            .camera
-            .resolve(cameras.as_ref(), view.t, None)?
-            .camera(w, h)?;
-        crate::service::check_background(view.background)?;
+        let camera = self.view_camera(&record, &view)?;
         let approximation = self.feature_approximation(&record, &quality, &[view.t])?;
         let encoding = self.store.encoding(id).await?;
         let id = id.to_owned();

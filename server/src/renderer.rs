@@ -69,13 +69,7 @@ impl Renderer {
         camera: &Camera,
         background: [f32; 3],
     ) -> Result<Image, ServiceError> {
-        let options = RenderOptions {
-            background,
-            features: false,
-            footprint: self.footprint,
-            ..RenderOptions::default()
-        };
-        Ok(self.inner.render(set, camera, &options)?)
+        self.render_with(set, camera, background, false)
     }
 
     /// Renders one view with the set's feature vectors composited into its feature channels.
@@ -85,9 +79,19 @@ impl Renderer {
         camera: &Camera,
         background: [f32; 3],
     ) -> Result<Image, ServiceError> {
+        self.render_with(set, camera, background, true)
+    }
+
+    fn render_with(
+        &self,
+        set: &GaussianSet,
+        camera: &Camera,
+        background: [f32; 3],
+        features: bool,
+    ) -> Result<Image, ServiceError> {
         let options = RenderOptions {
             background,
-            features: true,
+            features,
             footprint: self.footprint,
             ..RenderOptions::default()
         };

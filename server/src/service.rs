@@ -514,6 +514,24 @@ impl Service {
         Ok((w, h))
     }
 
+    /// The camera of a single view of clip `record`, the view checked (its time inside the span,
+    /// its size within the limits, its background finite) before any decoding is spent on it.
+    pub fn view_camera(
+        &self,
+        record: &ClipRecord,
+        view: &ViewRequest,
+    ) -> Result<Camera, ServiceError> {
+        self.check_times(record, &[view.t])?;
+        let (w, h) = self.image_size(view.width, view.height)?;
+        let cameras = self.input_cameras(record);
+        let camera = view
+            .camera
+            .resolve(cameras.as_ref(), view.t, None)?
+            .camera(w, h)?;
+        check_background(view.background)?;
+        Ok(camera)
+    }
+
     /// Renders one view of clip `id`.
     pub async fn render_view(
         self: &Arc<Self>,
@@ -522,14 +540,7 @@ impl Service {
         quality: QualitySpec,
     ) -> Result<Image, ServiceError> {
         let record = self.store.get_or_fetch(id).await?;
-        self.check_times(&record, &[view.t])?;
-        let (w, h) = self.image_size(view.width, view.height)?;
-        let cameras = self.input_cameras(&record);
-        let camera = view
-            .camera
-            .resolve(cameras.as_ref(), view.t, None)?
-            .camera(w, h)?;
-        check_background(view.background)?;
+        let camera = self.view_camera(&record, &view)?;
         let approximation = self.approximation(&record, &quality, &[view.t])?;
         let encoding = self.store.encoding(id).await?;
         if approximation.is_exact() {
