@@ -10,11 +10,17 @@ to PyTorch eager (our mirror, the plain form: `C4G.decode_canonical`). The ways:
 plain decoder and on the precomputed one (`c4g.precomputed`; its context projection runs once per
 clip, before the timed calls, and is timed on its own), both with the engine's session settings
 (CPU provider, no arena, threads spinning, one thread per core), and the precomputed one again with
-`C4G_CPU_ARENA=true` and `C4G_INTRA_OP_SPINNING=false`; PyTorch with as many threads. `--forms`
-times fewer. `--settings` times ONNX Runtime's session settings against each other instead (arena,
-thread spinning; on the first of `--forms`). `--profile` also writes ONNX Runtime's per-node profile
+`C4G_CPU_ARENA=true` and `C4G_INTRA_OP_SPINNING=false`, also as it was exported before the last
+layer's qkv projection was split (`precomputed-unsplit`: one product, q for every row; see
+`decoder.DecoderAttention.split_projection`); PyTorch with as many threads. `--forms` picks the
+graphs. `--settings` times ONNX Runtime's session settings against each other instead (arena,
+thread spinning, denormals as zero; on the first of `--forms`), and `--batching` the batch sizes
+of `--batch` against each other (a target's time, calls in turn). `--profile` also writes ONNX Runtime's per-node profile
 of one call per way and prints the time per operator type, which is where the exact speed-ups are
-found.
+found. `--gemm` times instead the decoder's large matrix products alone, one by one at their shapes
+for T context frames and B = 1: a one-MatMul ONNX graph whose weight is an initializer (prepacked by
+MLAS, as the decoder's are) against `torch.nn.functional.linear` (MKL, as the mirror's `nn.Linear`),
+in GFLOP/s: how fast each library multiplies on this CPU, apart from everything else.
 
 The features are random, and the times are the reference normalisation of context frames 0..T-1
 for a target in the middle of the span.
@@ -33,19 +39,31 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+import onnx
 import onnxruntime as ort
 import torch
+from onnx import TensorProto, helper, numpy_helper
 
 from .attention import fused_export
+from .decoder import split_query_projection
 from .export import DECODER_FORMS, _config, build_model, export_plain_decoder, export_precomputed_decoder
 
+# The graphs the bench can time: the export's two decoder forms, and the precomputed one as the
+# export wrote it before the last layer's qkv projection was split (one product, q for every row).
+GRAPHS = (*DECODER_FORMS, "precomputed-unsplit")
 
-def session_options(profile_dir: Path | None = None, arena: bool = False, spinning: bool = True) -> ort.SessionOptions:
+
+def session_options(
+    profile_dir: Path | None = None, arena: bool = False, spinning: bool = True, denormal_as_zero: bool = False
+) -> ort.SessionOptions:
     """The engine's session settings: c4g-runtime's defaults (CPU arena off, threads spinning,
-    default thread count), or the `C4G_CPU_ARENA` / `C4G_INTRA_OP_SPINNING` ones asked for."""
+    default thread count), or the `C4G_CPU_ARENA` / `C4G_INTRA_OP_SPINNING` ones asked for;
+    `denormal_as_zero` sets ONNX Runtime's `session.set_denormal_as_zero` (not an engine setting)."""
     options = ort.SessionOptions()
     options.enable_cpu_mem_arena = arena
     options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
+    if denormal_as_zero:
+        options.add_session_config_entry("session.set_denormal_as_zero", "1")
     if profile_dir is not None:
         options.enable_profiling = True
         options.profile_file_prefix = str(profile_dir / "decoder")
@@ -74,18 +92,19 @@ def per_op(profile: Path) -> dict[str, float]:
 
 
 SETTINGS = {
-    "engine default (no arena, spinning)": (False, True),
-    "C4G_CPU_ARENA=true": (True, True),
-    "C4G_INTRA_OP_SPINNING=false": (False, False),
-    "both": (True, False),
+    "engine default (no arena, spinning)": (False, True, False),
+    "C4G_CPU_ARENA=true": (True, True, False),
+    "C4G_INTRA_OP_SPINNING=false": (False, False, False),
+    "both": (True, False, False),
+    "both + denormals as zero": (True, False, True),
 }
 
 
 def compare_settings(path: Path, projection: Path | None, cfg, args) -> None:
     """One session per setting, timed call by call in turn (median of `--repeats` each)."""
     sessions = {
-        name: ort.InferenceSession(str(path), session_options(None, arena, spinning), providers=["CPUExecutionProvider"])
-        for name, (arena, spinning) in SETTINGS.items()
+        name: ort.InferenceSession(str(path), session_options(None, *setting), providers=["CPUExecutionProvider"])
+        for name, setting in SETTINGS.items()
     }
     project = None if projection is None else ort.InferenceSession(str(projection), session_options(), providers=["CPUExecutionProvider"])
     for frames in args.frames:
@@ -104,9 +123,10 @@ def compare_settings(path: Path, projection: Path | None, cfg, args) -> None:
             print(f"T={frames} B={batch}: " + ", ".join(f"{k} {statistics.median(v):.2f} s" for k, v in times.items()), flush=True)
 
 
-# The ONNX Runtime ways the bench times: (name, decoder form, arena, spinning).
+# The ONNX Runtime ways the bench times: (name, graph, arena, spinning).
 WAYS = [
     ("plain", "plain", False, True),
+    ("precomputed unsplit, arena on, spinning off", "precomputed-unsplit", True, False),
     ("precomputed", "precomputed", False, True),
     ("precomputed, arena on, spinning off", "precomputed", True, False),
 ]
@@ -122,7 +142,8 @@ def export_forms(model, forms: list[str], tmp: Path) -> dict[str, tuple[Path, Pa
                 export_plain_decoder(model, decoder)
                 paths[form] = (decoder, None)
             else:
-                export_precomputed_decoder(model, decoder, tmp / "context_projection.onnx")
+                with split_query_projection(form == "precomputed"):
+                    export_precomputed_decoder(model, decoder, tmp / "context_projection.onnx")
                 paths[form] = (decoder, tmp / "context_projection.onnx")
     return paths
 
@@ -137,24 +158,144 @@ def print_profile(path: Path, feeds: dict, args, arena: bool, spinning: bool) ->
     print("  per operator (ms, 2 calls): " + ", ".join(f"{k} {v:.0f} ({v / total:.0%})" for k, v in list(ops.items())[:8]))
 
 
+def gemm_shapes(cfg, frames: int) -> list[tuple[str, int, int, int]]:
+    """The exported decoder's large matrix products at B = 1 as (what, rows, inner dimension,
+    columns): the first layer on every token (its qkv is the context projection's, once per clip),
+    the last on the query rows except for its keys and values."""
+    tokens, queries = frames * cfg.tokens_per_frame + cfg.queries, cfg.queries
+    d, inner, mlp = cfg.decoder_dim, cfg.decoder_heads * cfg.decoder_head_dim, cfg.decoder_mlp
+    return [
+        ("layer 1 to_out", tokens, inner, d),
+        ("layer 1 MLP up", tokens, d, mlp),
+        ("layer 1 MLP down", tokens, mlp, d),
+        ("layer 2 q", queries, d, inner),
+        ("layer 2 k", tokens, d, inner),
+        ("layer 2 v", tokens, d, inner),
+        ("layer 2 to_out", queries, inner, d),
+        ("layer 2 MLP up", queries, d, mlp),
+        ("layer 2 MLP down", queries, mlp, d),
+    ]
+
+
+def matmul_graph(path: Path, weight: np.ndarray) -> None:
+    """x [1, M, K] @ weight [K, N] as one ONNX MatMul with the weight an initializer."""
+    k, n = weight.shape
+    graph = helper.make_graph(
+        [helper.make_node("MatMul", ["x", "w"], ["y"])],
+        "gemm",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, "M", k])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, "M", n])],
+        [numpy_helper.from_array(weight, "w")],
+    )
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=10), str(path))
+
+
+def compare_gemm(cfg, args, tmp: Path) -> list[dict]:
+    """Each of the decoder's large products, ONNX Runtime (MLAS) against PyTorch (MKL), alternating."""
+    rng = np.random.default_rng(0)
+    rows = []
+    for frames in args.frames:
+        totals = {"onnxruntime": 0.0, "pytorch": 0.0, "gflop": 0.0}
+        for what, m, k, n in gemm_shapes(cfg, frames):
+            x = rng.standard_normal((1, m, k), dtype=np.float32)
+            w = (rng.standard_normal((k, n), dtype=np.float32) / np.sqrt(k)).astype(np.float32)
+            path = tmp / "gemm.onnx"
+            matmul_graph(path, w)
+            session = ort.InferenceSession(str(path), session_options(None, args.arena, not args.no_spinning), providers=["CPUExecutionProvider"])
+            xt, wt = torch.from_numpy(x), torch.from_numpy(np.ascontiguousarray(w.T))
+            times = {"onnxruntime": [], "pytorch": []}
+            with torch.inference_mode():
+                for _ in range(1 + args.repeats):
+                    t = time.perf_counter()
+                    (y,) = session.run(None, {"x": x})
+                    times["onnxruntime"].append(time.perf_counter() - t)
+                    t = time.perf_counter()
+                    yt = torch.nn.functional.linear(xt, wt)
+                    times["pytorch"].append(time.perf_counter() - t)
+            gflop = 2.0 * m * k * n / 1e9
+            best = {name: min(v[1:]) for name, v in times.items()}
+            diff = float(np.abs(y - yt.numpy()).max())
+            for name in best:
+                totals[name] += best[name]
+            totals["gflop"] += gflop
+            rows.append({"frames": frames, "what": what, "m": m, "k": k, "n": n, "gflop": gflop, **{f"{k_}_s": v for k_, v in best.items()}})
+            print(
+                f"T={frames:3d} {what:17s} [{m} x {k}] @ [{k} x {n}] {gflop:6.1f} GFLOP: onnxruntime {gflop / best['onnxruntime']:6.1f} GFLOP/s, "
+                f"pytorch {gflop / best['pytorch']:6.1f} GFLOP/s, ratio {best['onnxruntime'] / best['pytorch']:.2f} (differ by {diff:.1e})",
+                flush=True,
+            )
+        print(
+            f"T={frames:3d} all {totals['gflop']:.0f} GFLOP: onnxruntime {totals['onnxruntime']:.2f} s ({totals['gflop'] / totals['onnxruntime']:.1f} GFLOP/s), "
+            f"pytorch {totals['pytorch']:.2f} s ({totals['gflop'] / totals['pytorch']:.1f} GFLOP/s), ratio {totals['onnxruntime'] / totals['pytorch']:.2f}",
+            flush=True,
+        )
+    return rows
+
+
+def compare_batches(paths: dict[str, tuple[Path, Path | None]], cfg, args) -> None:
+    """The first of `--forms` with the arena on and spinning off, one call per batch size of
+    `--batch` in turn, so that load from elsewhere reaches every size alike: seconds a target."""
+    decoder, projection = paths[args.forms[0]]
+    session = ort.InferenceSession(str(decoder), session_options(None, True, False), providers=["CPUExecutionProvider"])
+    project = None if projection is None else ort.InferenceSession(str(projection), session_options(), providers=["CPUExecutionProvider"])
+    for frames in args.frames:
+        feeds = {batch: inputs(cfg, frames, batch) for batch in args.batch}
+        if project is not None:
+            (context_projection,) = project.run(None, {"features": feeds[args.batch[0]]["features"]})
+            for f in feeds.values():
+                f["context_projection"] = context_projection
+        times: dict[int, list[float]] = {batch: [] for batch in args.batch}
+        for _ in range(1 + args.repeats):
+            for batch, f in feeds.items():
+                t = time.perf_counter()
+                session.run(None, f)
+                times[batch].append((time.perf_counter() - t) / batch)
+        one = statistics.median(times[args.batch[0]][1:])
+        print(
+            f"T={frames:3d} {args.forms[0]}, arena on, spinning off, seconds a target: "
+            + ", ".join(f"B={b} {statistics.median(v[1:]):.3f} s ({statistics.median(v[1:]) / one:.2f})" for b, v in times.items()),
+            flush=True,
+        )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m c4g.bench_decoder", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", default="official")
     ap.add_argument("--frames", type=int, nargs="+", default=[4, 16])
     ap.add_argument("--batch", type=int, nargs="+", default=[1])
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--forms", nargs="+", choices=DECODER_FORMS, default=["plain", "precomputed"], help="decoder forms to time")
+    ap.add_argument(
+        "--forms",
+        nargs="+",
+        choices=GRAPHS,
+        default=["plain", "precomputed"],
+        help="decoder graphs to time (precomputed-unsplit: the precomputed form with the last layer's qkv as one product)",
+    )
     ap.add_argument(
         "--settings",
         action="store_true",
         help="instead of PyTorch, compare ONNX Runtime's session settings: the engine default, arena on, spinning off, both",
     )
     ap.add_argument("--profile", type=Path, help="write an ONNX Runtime profile of one call per way here")
+    ap.add_argument(
+        "--batching",
+        action="store_true",
+        help="instead, time a target at each batch size of --batch, calls in turn (the first of --forms, arena on, spinning off)",
+    )
+    ap.add_argument("--gemm", action="store_true", help="instead, time the decoder's large matrix products alone in both libraries (best of --repeats)")
+    ap.add_argument("--arena", action="store_true", help="with --gemm: ONNX Runtime's CPU arena on")
+    ap.add_argument("--no-spinning", action="store_true", help="with --gemm: ONNX Runtime's threads do not spin")
     ap.add_argument("--json", type=Path, help="also write the results as JSON")
     args = ap.parse_args(argv)
     threads = os.cpu_count() or 1
     torch.set_num_threads(threads)
     cfg = _config(args.config, 0)
+    if args.gemm:
+        with tempfile.TemporaryDirectory() as tmp:
+            rows = compare_gemm(cfg, args, Path(tmp))
+        if args.json:
+            args.json.write_text(json.dumps({"config": args.config, "threads": threads, "gemm": rows}, indent=2) + "\n")
+        return 0
     t0 = time.perf_counter()
     model = build_model(cfg, seed=0, checkpoint=None)
     print(f"model: {args.config}, {sum(p.numel() for p in model.parameters()):,} parameters ({time.perf_counter() - t0:.0f} s to build)", flush=True)
@@ -165,10 +306,14 @@ def main(argv: list[str] | None = None) -> int:
             del model
             compare_settings(*paths[args.forms[0]], cfg, args)
             return 0
+        if args.batching:
+            del model
+            compare_batches(paths, cfg, args)
+            return 0
         cpu = ["CPUExecutionProvider"]
         ways = [w for w in WAYS if w[1] in args.forms]
         sessions = {name: ort.InferenceSession(str(paths[form][0]), session_options(None, arena, spinning), providers=cpu) for name, form, arena, spinning in ways}
-        projection = paths.get("precomputed", (None, None))[1]
+        projection = next((p for _, p in paths.values() if p is not None), None)
         project = None if projection is None else ort.InferenceSession(str(projection), session_options(), providers=cpu)
         for frames in args.frames:
             for batch in args.batch:
@@ -180,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
                     t = time.perf_counter()
                     (context_projection,) = project.run(None, {"features": feeds["features"]})
                     row["context_projection_s"] = time.perf_counter() - t
-                    form_feeds["precomputed"] = {**feeds, "context_projection": context_projection}
+                    form_feeds["precomputed"] = form_feeds["precomputed-unsplit"] = {**feeds, "context_projection": context_projection}
                 times: dict[str, list[float]] = {name: [] for name in [*sessions, "pytorch"]}
                 outputs = {}
                 with torch.inference_mode():

@@ -18,7 +18,9 @@ Two checks before anything is written, both bit for bit (the graphs compute the 
 the same values): the decoder exported again *without* the subset gives exactly the package's
 Gaussians, which proves every weight came back; and the new decoder gives them too, given every
 query index and given none (it defaults to every query). Only the plain decoder form at f32 is read (what c4g-tiny is); other packages are made
-again from their checkpoints with `python -m c4g.export`.
+again from their checkpoints with `python -m c4g.export`. The decoder is exported again as packages
+were before the export split the last layer's qkv projection (`decoder.split_query_projection`), so
+that it computes exactly what the package's did.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from onnx import numpy_helper
 
 from .attention import fused_export
 from .config import C4GConfig
+from .decoder import split_query_projection
 from .export import export_plain_decoder, readable_by_all
 from .init import random_init
 from .model import C4G
@@ -64,7 +67,7 @@ def _initializer_sources(cfg: C4GConfig, scratch: Path) -> dict[str, tuple[str, 
     probe = C4G(cfg)
     random_init(probe, seed=12345)
     probe.eval()
-    with fused_export(True):
+    with fused_export(True), split_query_projection(False):
         export_plain_decoder(probe, scratch / "probe.onnx")
     params = {k: v.detach().numpy() for k, v in probe.state_dict().items()}
     sources = {}
@@ -123,7 +126,7 @@ def upgrade(package: Path) -> dict:
         model.eval()
         feeds = _probe_feeds(cfg, cfg.queries)
         expected = _decode(decoder, feeds)
-        with fused_export(manifest.get("attention") == "fused"):
+        with fused_export(manifest.get("attention") == "fused"), split_query_projection(False):
             export_plain_decoder(model, scratch / "again.onnx")
             export_plain_decoder(model, scratch / "subset.onnx", query_subset=True)
         if not np.array_equal(_decode(scratch / "again.onnx", feeds), expected):

@@ -601,11 +601,12 @@ def document(results: dict, png_name: str) -> str:
     return "\n".join(L)
 
 
-# Sections other benches write into the page (`engine/benches/query_dropping.rs`), between a begin
-# and an end marker: kept verbatim, after the sweep's own text, whenever the page is remade.
+# Sections other benches write into the page (`engine/benches/query_dropping.rs`,
+# `engine/benches/official_keyframes.rs`), between a begin and an end marker: kept verbatim, after
+# the sweep's own text, whenever the page is remade.
 KEPT_BEGIN = "<!-- kept: begin {name} -->"
 KEPT_END = "<!-- kept: end {name} -->"
-KEPT_SECTIONS = ("query-dropping",)
+KEPT_SECTIONS = ("query-dropping", "official-keyframes")
 
 
 def kept_sections(previous: str) -> str:

@@ -7,6 +7,8 @@
 - In float32: within 1e-5 of the plain decoder (measured about 2e-6: the two forms sum the first
   layer's dot products in different orders; the bound leaves room for other CPUs' kernels).
 - Exported to ONNX in both forms: both within 1e-4 of the mirror (the project's parity tolerance).
+- The exported last layer projects q for the query rows alone, k and v apart (no wide qkv product
+  to slice), and gives what the graph with one qkv product gives, within 1e-5.
 - The committed fixture `models/fixtures/decoder-forms` still reproduces its stored outputs.
 """
 
@@ -15,6 +17,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import onnx
 import onnxruntime as ort
 import pytest
 import torch
@@ -22,6 +25,7 @@ from safetensors.numpy import load_file
 
 from c4g import export, precision
 from c4g.config import OFFICIAL, OFFICIAL_SMALL
+from c4g.decoder import split_query_projection
 from c4g.init import random_init
 from c4g.model import C4G
 from c4g.precomputed import ContextProjection, PrecomputedDecoder
@@ -129,6 +133,28 @@ def test_both_exported_forms_reproduce_the_mirror(model, packages, frames, batch
     for form in ("plain", "precomputed"):
         got = decode(packages / form, features, ctx, tgt)
         np.testing.assert_allclose(got, expected, atol=1e-4, rtol=1e-3, err_msg=form)
+
+
+def last_layer_weights(path: Path) -> list[list[int]]:
+    """Shapes of the constant right-hand sides of the last decoder layer's attention MatMuls."""
+    graph = onnx.load(str(path)).graph
+    shapes = {i.name: list(i.dims) for i in graph.initializer}
+    last = f"/gmae_decoder/layers.{OFFICIAL_SMALL.decoder_depth - 1}.0/"
+    return sorted(shapes[n.input[1]] for n in graph.node if n.op_type == "MatMul" and n.name.startswith(last) and n.input[1] in shapes)
+
+
+@pytest.mark.parametrize("form", ["plain", "precomputed"])
+def test_the_exported_last_layer_projects_q_for_the_query_rows_alone(model, packages, tmp_path, form):
+    d, inner = OFFICIAL_SMALL.decoder_dim, OFFICIAL_SMALL.decoder_heads * OFFICIAL_SMALL.decoder_head_dim
+    # Three products of width `inner` (q on the query rows, k and v on every row) and to_out.
+    assert last_layer_weights(packages / form / "decoder.onnx") == sorted([[d, inner]] * 3 + [[inner, d]])
+    with split_query_projection(False):
+        export.export_package(model, tmp_path / form, f"c4g-{form}", "0.1.0", {"kind": "random-init", "seed": 3}, decoder_form=form)
+    assert last_layer_weights(tmp_path / form / "decoder.onnx") == sorted([[d, 3 * inner], [inner, d]])
+    rng = np.random.default_rng(1)
+    features = rng.standard_normal((3, 256, d)).astype(np.float32)
+    ctx, tgt = normalise_batch([0, 1, 2], [0.5, 1.5, 2.0])
+    np.testing.assert_allclose(decode(packages / form, features, ctx, tgt), decode(tmp_path / form, features, ctx, tgt), atol=1e-5, rtol=0)
 
 
 @pytest.mark.parametrize("name,bound", [("f16", 5e-3), ("int8", 0.1)])

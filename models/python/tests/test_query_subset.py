@@ -22,6 +22,7 @@ import torch
 
 from c4g import export, query_subset_upgrade
 from c4g.config import OFFICIAL_SMALL
+from c4g.decoder import split_query_projection
 from c4g.init import random_init
 from c4g.model import C4G
 from c4g.precomputed import ContextProjection, PrecomputedDecoder
@@ -90,7 +91,10 @@ def packages(model, tmp_path_factory):
     root = tmp_path_factory.mktemp("subset")
     for form in ("plain", "precomputed"):
         export.export_package(model, root / form, f"c4g-{form}", "0.1.0", {"kind": "random-init", "seed": 5}, decoder_form=form)
-    export.export_package(model, root / "old", "c4g-old", "0.1.0", {"kind": "random-init", "seed": 5}, decoder_form="plain", query_subset=False)
+    # As packages were exported before decoders took query_indices: also before the export split
+    # the last layer's qkv projection (what the upgrade reads back, like c4g-tiny).
+    with split_query_projection(False):
+        export.export_package(model, root / "old", "c4g-old", "0.1.0", {"kind": "random-init", "seed": 5}, decoder_form="plain", query_subset=False)
     return root
 
 
