@@ -39,6 +39,8 @@
 #[path = "../tests/common/mod.rs"]
 mod common;
 
+use common::{load_average, machine};
+
 use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::time::Instant;
@@ -550,23 +552,4 @@ fn document(r: &Report) -> String {
     )
     .unwrap();
     doc
-}
-
-fn machine() -> String {
-    let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
-    let cpu = cpuinfo
-        .lines()
-        .find(|l| l.starts_with("model name"))
-        .and_then(|l| l.split(':').nth(1))
-        .map_or("unknown CPU".to_owned(), |s| s.trim().to_owned());
-    let threads = std::thread::available_parallelism().map_or(0, usize::from);
-    format!(
-        "{cpu}, {threads} threads, no GPU (ONNX Runtime's CPU execution provider, the CPU rasterizer)"
-    )
-}
-
-fn load_average() -> String {
-    std::fs::read_to_string("/proc/loadavg")
-        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
-        .unwrap_or_default()
 }

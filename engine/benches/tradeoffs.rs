@@ -51,6 +51,8 @@
 #[path = "../tests/common/mod.rs"]
 mod common;
 
+use common::load_average;
+
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -569,12 +571,6 @@ fn machine() -> Value {
         "onnxruntime": ort,
         "execution": "CPU only: ONNX Runtime's CPU execution provider, the CPU rasterizer",
     })
-}
-
-fn load_average() -> String {
-    std::fs::read_to_string("/proc/loadavg")
-        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
-        .unwrap_or_default()
 }
 
 /// Resets the process's peak resident set to the current one (Linux ≥ 4.0).

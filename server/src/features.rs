@@ -436,7 +436,7 @@ impl Service {
             input: Some(InputSpec::default()),
             ..CameraSpec::default()
         });
-        let cameras = self.input_cameras(&record);
+        let cameras = self.input_cameras_for(&record, [&camera]);
         let resolve = |t: f64| -> Result<c4g_renderer::Camera, ServiceError> {
             camera
                 .resolve(cameras.as_ref(), t, None)?

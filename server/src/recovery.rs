@@ -28,6 +28,7 @@ use glam::{Affine3A, Mat4};
 use serde::{Deserialize, Serialize};
 
 use crate::ServiceError;
+use crate::camera::CameraSpec;
 use crate::intake::cameras::{ClipCameras, ContextCamera, Intrinsics};
 use crate::service::Service;
 use crate::store::{ClipRecord, sync_dir, write_synced};
@@ -118,6 +119,21 @@ impl Service {
             .cameras
             .clone()
             .or_else(|| self.recovered_cameras(&record.id).map(|r| r.cameras))
+    }
+
+    /// [`input_cameras`](Self::input_cameras) when one of `specs` names the input camera, else
+    /// `None` without looking: a stated camera needs none, and finding the recovered ones reads a
+    /// file, which a render or trajectory of stated cameras should not pay for.
+    pub fn input_cameras_for<'a>(
+        &self,
+        record: &ClipRecord,
+        specs: impl IntoIterator<Item = &'a CameraSpec>,
+    ) -> Option<ClipCameras> {
+        specs
+            .into_iter()
+            .any(|spec| spec.input.is_some())
+            .then(|| self.input_cameras(record))
+            .flatten()
     }
 
     /// Context frame `k` of clip `id` as the model saw it: RGB in 0..1 at its input size.

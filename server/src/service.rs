@@ -523,7 +523,7 @@ impl Service {
     ) -> Result<Camera, ServiceError> {
         self.check_times(record, &[view.t])?;
         let (w, h) = self.image_size(view.width, view.height)?;
-        let cameras = self.input_cameras(record);
+        let cameras = self.input_cameras_for(record, [&view.camera]);
         let camera = view
             .camera
             .resolve(cameras.as_ref(), view.t, None)?
@@ -630,7 +630,7 @@ impl Service {
                 _ => (start + (end - start) * fraction(i)).min(end),
             })
             .collect();
-        let given = self.input_cameras(record);
+        let given = self.input_cameras_for(record, path.cameras.iter().chain([&path.camera]));
         let resolve = |spec: &CameraSpec, i: usize| {
             spec.resolve(given.as_ref(), times[i], Some(fraction(i)))?
                 .camera(w, h)

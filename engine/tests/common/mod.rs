@@ -144,3 +144,26 @@ pub fn tiny_clip_names() -> Vec<String> {
     names.sort();
     names
 }
+
+/// The machine line of the benches' reports: the CPU's model and threads, and that the work
+/// runs on the CPU (ONNX Runtime's CPU execution provider, the CPU rasterizer).
+pub fn machine() -> String {
+    let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+    let cpu = cpuinfo
+        .lines()
+        .find(|l| l.starts_with("model name"))
+        .and_then(|l| l.split(':').nth(1))
+        .map_or("unknown CPU".to_owned(), |s| s.trim().to_owned());
+    let threads = std::thread::available_parallelism().map_or(0, usize::from);
+    format!(
+        "{cpu}, {threads} threads, no GPU (ONNX Runtime's CPU execution provider, the CPU rasterizer)"
+    )
+}
+
+/// The load average over 1, 5 and 15 minutes, as `/proc/loadavg` gives it: what a report says
+/// of how shared the machine was.
+pub fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_default()
+}
