@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .raster_fast import render_batch
+from .raster_fast import dominant_ids, render_batch
 
 FPS = 10.0
 FRAMES = 17
@@ -298,6 +298,12 @@ class EvalScene:
             return _look(p["eye"] + np.array([0.0, -p["rise"] * s, 0.0]), target)
         return _look(p["eye"], target)
 
+    def object_ids(self) -> np.ndarray:
+        """Each Gaussian's object id, in the order of `gaussians(t)`: 0 for the stage, k for the
+        k-th thing."""
+        counts = [len(self.stage.opacities)] + [sum(len(p.opacities) for p in thing.gaussians(0.0)) for thing in self.things]
+        return np.concatenate([np.full(c, i, dtype=np.int64) for i, c in enumerate(counts)])
+
     def gaussians(self, t: float) -> tuple[np.ndarray, ...]:
         """(means, scales, quaternions wxyz, opacities, colours) of every Gaussian at time t."""
         parts = [self.stage] + [part for thing in self.things for part in thing.gaussians(t)]
@@ -361,6 +367,16 @@ def render(scene: EvalScene, times: np.ndarray, size: int, cameras: np.ndarray |
     with torch.no_grad():
         out = render_batch(stack(0), stack(1), stack(2), stack(3), stack(4), (f, f, size / 2, size / 2), torch.from_numpy(w2c), size, size)
     return out["rgb"].clamp(0, 1).numpy().astype(np.float32), out["expected_depth"].numpy(), w2c
+
+
+def render_object_ids(scene: EvalScene, times: np.ndarray, size: int, cameras: np.ndarray | None = None) -> np.ndarray:
+    """The object id [T, H, W] (uint8, `EvalScene.object_ids`) that carries most of each pixel's
+    weight, at the cameras `render` uses."""
+    w2c = np.stack([scene.camera(float(t)) if cameras is None else cameras[i] for i, t in enumerate(times)])
+    sets = [scene.gaussians(float(t)) for t in times]
+    gaussians = tuple(np.stack([s[k] for s in sets]) for k in range(4))
+    f = FOCAL * size
+    return dominant_ids(gaussians, scene.object_ids(), (f, f, size / 2, size / 2), w2c, size)
 
 
 # Points followed on each object for tracking evaluation (`c4g.eval_fixtures`), split over its parts.

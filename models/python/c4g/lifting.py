@@ -74,13 +74,18 @@ def render_features(
     gaussians: tuple, lifted: torch.Tensor, intrinsics: tuple, world_to_camera: torch.Tensor, size: int
 ) -> torch.Tensor:
     """Per-Gaussian features [V, N, F] of the sets `gaussians` (render_batch's arguments, [V, N, ·])
-    composited like colours at each view's camera with the differentiable dense rasterizer:
-    [V, H, W, F]."""
+    composited like colours at each view's camera: [V, H, W, F].
+
+    The blending weights come from the dense rasterizer without gradient, so the feature loss
+    trains what is lifted, not the geometry it is lifted onto (colour and depth train that): the
+    rendered features are then a product of fixed weights and the features, which costs one
+    matrix product a view instead of a second differentiable render."""
     means, scales, rotations, opacities, colours = gaussians
-    images = [
-        render(means[v], scales[v], rotations[v], opacities[v], colours[v], intrinsics, world_to_camera[v], size, size, features=lifted[v])["features"]
-        for v in range(len(lifted))
-    ]
+    images = []
+    for v in range(len(lifted)):
+        with torch.no_grad():
+            w = render(means[v], scales[v], rotations[v], opacities[v], colours[v], intrinsics, world_to_camera[v], size, size, weights=True)["weights"]
+        images.append((w.T @ lifted[v]).reshape(size, size, -1))
     return torch.stack(images)
 
 

@@ -247,3 +247,19 @@ def render_batch(
     rgb, depth, alpha = _Blend.apply(uv, conic, opacities, colors, z, radius, valid, background, width, height)
     expected = torch.where(alpha > 0, depth / torch.where(alpha > 0, alpha, torch.ones_like(alpha)), torch.zeros_like(depth))
     return {"rgb": rgb, "alpha": alpha, "depth": depth, "expected_depth": expected}
+
+
+def dominant_ids(gaussians: tuple, ids: np.ndarray, intrinsics: tuple, w2c: np.ndarray, size: int) -> np.ndarray:
+    """Per-pixel object ids [T, H, W] (uint8) of T sets of Gaussians (means, linear scales, w-x-y-z
+    rotations, opacities; [T, N, ·] float64) whose Gaussian i belongs to object `ids[i]`: the id
+    that carries most of each pixel's blending weight. Each id's one-hot indicator is composited as
+    a colour channel, three ids a render."""
+    args = tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in gaussians)
+    count = int(ids.max()) + 1
+    one_hot = np.eye(3 * -(-count // 3))[ids]  # [N, ids rounded up to a multiple of 3]
+    weights = []
+    with torch.no_grad():
+        for first in range(0, one_hot.shape[1], 3):
+            channels = torch.from_numpy(np.broadcast_to(one_hot[None, :, first : first + 3], (len(w2c), len(ids), 3)).copy())
+            weights.append(render_batch(*args, channels, intrinsics, torch.from_numpy(w2c), size, size)["rgb"])
+    return torch.cat(weights, dim=-1)[..., :count].argmax(dim=-1).numpy().astype(np.uint8)

@@ -41,11 +41,14 @@ def render(
     background: torch.Tensor | None = None,
     near: float = NEAR,
     far: float = FAR,
+    weights: bool = False,
 ) -> dict[str, torch.Tensor]:
     """Renders N Gaussians ([N, 3] means and linear scales, [N, 4] w-x-y-z rotations, [N] opacities,
     [N, 3] colours, optional [N, F] features) with pinhole `intrinsics` (fx, fy, cx, cy in pixels)
     and a [4, 4] world-to-camera pose. Returns rgb [H, W, 3], alpha, depth (alpha-weighted),
-    expected_depth [H, W] and features [H, W, F]."""
+    expected_depth [H, W] and features [H, W, F]; with `weights`, also each Gaussian's blending
+    weight at each pixel, "weights" [N, H·W] in the Gaussians' own order (what a per-Gaussian
+    quantity is composited with)."""
     fx, fy, cx, cy = intrinsics
     dtype = means.dtype
     params = [means, scales, rotations_wxyz, opacities[:, None], colors] + ([features] if features is not None else [])
@@ -108,4 +111,6 @@ def render(
     }
     if features is not None:
         out["features"] = (weight.T @ features[o].to(dtype)).reshape(height, width, -1)
+    if weights:
+        out["weights"] = torch.zeros_like(weight).index_copy(0, o, weight)
     return out

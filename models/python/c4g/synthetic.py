@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .raster_fast import render_batch
+from .raster_fast import dominant_ids, render_batch
 
 SPLITS = {"train": range(0, 1_000_000), "validation": range(1_000_000, 1_001_000), "test": range(2_000_000, 2_001_000)}
 # Every clip: FRAMES frames at FPS (media time 0 .. 1 s). Intrinsics are C4G's fixed normalised ones
@@ -520,22 +520,14 @@ OBJECT_IDS = 8
 def render_object_ids(scene: Scene, times: np.ndarray, size: int, cameras: np.ndarray | None = None) -> np.ndarray:
     """The object id [T, H, W] (uint8, `Scene.object_ids`) that carries most of each pixel's
     weight, rendered like `render_clip` (same cameras, same Gaussians) but separately from it, so
-    that the clips it makes stay exactly as they were. Each id's one-hot indicator is composited as a
-    colour channel, three ids a render."""
+    that the clips it makes stay exactly as they were."""
     ids = scene.object_ids()
     if ids.max() >= OBJECT_IDS:
         raise ValueError(f"scene {scene.seed} has {ids.max()} objects; object-id renders tell {OBJECT_IDS - 1} apart")
-    fx, fy, cx, cy = (v * size for v in scene.normalised_intrinsics)
-    w2c = torch.from_numpy(np.stack([scene.camera(float(t)) if cameras is None else cameras[i] for i, t in enumerate(times)]))
+    intrinsics = tuple(v * size for v in scene.normalised_intrinsics)
+    w2c = np.stack([scene.camera(float(t)) if cameras is None else cameras[i] for i, t in enumerate(times)])
     sets = [scene.gaussians(float(t)) for t in times]
-    f64 = lambda key: torch.from_numpy(np.stack([getattr(g, key) for g in sets]))  # noqa: E731
-    rots = torch.from_numpy(np.stack([_matrix_to_wxyz(g.rotations) for g in sets]))
-    args = (f64("means"), f64("scales"), rots, f64("opacities"))
-    count = int(ids.max()) + 1
-    one_hot = np.eye(3 * -(-count // 3))[ids]  # [N, ids rounded up to a multiple of 3]
-    weights = []
-    with torch.no_grad():
-        for first in range(0, one_hot.shape[1], 3):
-            channels = torch.from_numpy(np.broadcast_to(one_hot[None, :, first : first + 3], (len(times), len(ids), 3)).copy())
-            weights.append(render_batch(*args, channels, (fx, fy, cx, cy), w2c, size, size)["rgb"])
-    return torch.cat(weights, dim=-1)[..., :count].argmax(dim=-1).numpy().astype(np.uint8)
+    stack = lambda key: np.stack([getattr(g, key) for g in sets])  # noqa: E731
+    rots = np.stack([_matrix_to_wxyz(g.rotations) for g in sets])
+    return dominant_ids((stack("means"), stack("scales"), rots, stack("opacities")), ids, intrinsics, w2c, size)
+

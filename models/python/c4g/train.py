@@ -46,11 +46,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .checkpoint import feature_dim_of, load_into, read_state_dict, sha256
 from .config import C4GConfig
 from . import lifting
 from .decoder import SH_C0, activate, to_canonical
 from .dataset import Sample, Split, random_windows, span, window
-from .model import C4G
+from .model import C4G, is_feature_stream
 from .raster_fast import render_batch
 from .synthetic import C4G_FOCAL
 from .time_policy import POLICIES, normalise_batch
@@ -201,6 +202,20 @@ def attach_gain(model: C4G):
     return model.gmae_to_gaussians.register_forward_hook(lambda _m, _i, out: out * gain.to(out.dtype))
 
 
+@torch.no_grad()
+def load_trainable(model: C4G, state: dict[str, torch.Tensor]) -> None:
+    """Load an official-layout checkpoint (as `official_state_dict` writes it) for training: the
+    head gain comes back out of the head's weights. A feature stream the checkpoint lacks keeps the
+    model's initialisation."""
+    if feature_dim_of(state) != model.cfg.feature_dim:
+        # A feature stream of another width lifts another kind: this run's starts as initialised.
+        state = {k: v for k, v in state.items() if not is_feature_stream(k)}
+    load_into(model, state)
+    gain = head_gain()
+    model.gmae_to_gaussians.weight.div_(gain[:, None])
+    model.gmae_to_gaussians.bias.div_(gain)
+
+
 def official_state_dict(model: C4G) -> dict[str, torch.Tensor]:
     """Weights in the official checkpoint layout (prefix `encoder.`), with the head gain folded in."""
     state = {k: v.detach().clone() for k, v in model.state_dict().items()}
@@ -340,6 +355,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--surface-weight", type=float, default=0.5, help="weight of the Chamfer position and colour terms")
     ap.add_argument("--features", choices=["none", *lifting.KINDS], default="none", help="feature lifting: what the feature stream learns to lift")
     ap.add_argument("--feature-weight", type=float, default=1.0, help="weight of the rendered features' L1 term")
+    ap.add_argument("--feature-stream-only", action="store_true", help="train the feature stream alone, on the loss of its rendered features, every other weight held as --init-from gives it")
+    ap.add_argument("--init-from", type=Path, default=None, help="start from this checkpoint (official layout, as this tool writes it: c4g-tiny v2 starts from v1); a feature stream it lacks starts as initialised")
+    ap.add_argument("--targets-per-window", type=int, default=None, help="render at most this many of a window's targets (drawn per step); default all of them")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--checkpoint-every", type=int, default=100)
@@ -350,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     args.run.mkdir(parents=True, exist_ok=True)
     # Defaults that c4g-tiny (v1) was trained before they existed are left out of its recipe, so
     # its runs still resume and its recipe stays as it was.
-    v1_defaults = {"strides": "2", "time_policy": "stable"}
+    v1_defaults = {"strides": "2", "time_policy": "stable", "init_from": None, "targets_per_window": None, "feature_stream_only": False}
     # Feature lifting's settings are recorded only when it is on (so a run without stays c4g-tiny's).
     lifting_settings = ("features", "feature_weight") if args.features == "none" else ()
     recipe = {
@@ -379,10 +397,21 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     model = C4G(cfg)
     initialise(model, args.seed)
-    initialise_from_data(model, train)
+    if args.init_from is None:
+        initialise_from_data(model, train)
+    else:
+        load_trainable(model, read_state_dict(args.init_from))
+        recipe["init_from_sha256"] = sha256(args.init_from)
     attach_gain(model)
-    decay = [p for n, p in model.named_parameters() if p.ndim >= 2 and "token" not in n and "pos_embed" not in n]
-    rest = [p for n, p in model.named_parameters() if not (p.ndim >= 2 and "token" not in n and "pos_embed" not in n)]
+    if args.feature_stream_only:
+        if features_kind is None or args.init_from is None:
+            print("error: --feature-stream-only trains a feature stream (--features) on a model from --init-from", file=sys.stderr)
+            return 2
+        for name, p in model.named_parameters():
+            p.requires_grad_(is_feature_stream(name))
+    trained = [(n, p) for n, p in model.named_parameters() if p.requires_grad]
+    decay = [p for n, p in trained if p.ndim >= 2 and "token" not in n and "pos_embed" not in n]
+    rest = [p for n, p in trained if not (p.ndim >= 2 and "token" not in n and "pos_embed" not in n)]
     opt = torch.optim.AdamW([{"params": decay, "weight_decay": 0.01}, {"params": rest, "weight_decay": 0.0}], lr=args.lr, betas=(0.9, 0.99))
     step = 0
     last = args.run / "last.pt"
@@ -418,24 +447,30 @@ def main(argv: list[str] | None = None) -> int:
         totals: dict[str, float] = {}
         opt.zero_grad()
         for sample in random_windows(train, rng, args.batch, t, stride):
-            views = np.concatenate((sample.targets, rng.choice(sample.context, 1)))
+            targets = sample.targets
+            if args.targets_per_window is not None and len(targets) > args.targets_per_window:
+                targets = np.sort(rng.choice(targets, args.targets_per_window, replace=False))
+            views = np.concatenate((targets, rng.choice(sample.context, 1)))
             out, gaussians = predict(model, sample, views, args.time_policy, features_kind)
             terms = loss_terms(out, gaussians, sample, views, args.dynamic_weight, rng)
             if features_kind is not None:
                 target = lifting.targets(model, sample, views, features_kind)
                 terms["feature"] = lifting.loss(model, out["features"], target, features_kind)
-            loss = (
-                terms["mse"]
-                + args.ssim_weight * (1 - terms["ssim"])
-                + args.depth_weight * terms["depth"]
-                + args.alpha_weight * terms["alpha"]
-                + args.surface_weight * (terms["chamfer"] + terms["colour"])
-                + (args.feature_weight * terms["feature"] if features_kind is not None else 0.0)
-            )
+            if args.feature_stream_only:
+                loss = terms["feature"]
+            else:
+                loss = (
+                    terms["mse"]
+                    + args.ssim_weight * (1 - terms["ssim"])
+                    + args.depth_weight * terms["depth"]
+                    + args.alpha_weight * terms["alpha"]
+                    + args.surface_weight * (terms["chamfer"] + terms["colour"])
+                    + (args.feature_weight * terms["feature"] if features_kind is not None else 0.0)
+                )
             (loss / args.batch).backward()
             for k, v in terms.items():
                 totals[k] = totals.get(k, 0.0) + float(v.detach()) / args.batch
-        grad_norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0))
+        grad_norm = float(torch.nn.utils.clip_grad_norm_([p for _, p in trained], 1.0))
         opt.step()
         step += 1
         record = {"step": step, "lr": lr, "T": t, "stride": stride, "grad_norm": grad_norm, "psnr": psnr(totals["mse"]), **totals, "elapsed_s": time.time() - t0}

@@ -57,3 +57,16 @@ def test_the_harness_scores_the_default_package_and_its_baselines_on_both_worlds
         # Two neighbours averaged beat the mean colour at the frames between them.
         assert scores["blend of neighbours"]["interpolated"] > scores["mean colour"]["interpolated"]
     assert synthetic.FPS == eval_world.FPS
+
+
+def test_object_ids_cover_the_stage_and_each_thing_where_it_is_seen():
+    scene = eval_world.make_scene(5)
+    times = np.array([0.0, 0.8])
+    ids = eval_world.render_object_ids(scene, times, 64)
+    assert ids.shape == (2, 64, 64) and ids.dtype == np.uint8
+    assert len(scene.object_ids()) == len(scene.gaussians(0.0)[3])
+    assert set(np.unique(ids)) <= set(range(len(scene.things) + 1)) and 0 in ids and ids.max() >= 1
+    # Seen from elsewhere (a camera turned away from the things), the masks change.
+    cams = np.stack([scene.camera(0.0)] * 2)
+    cams[:, :3, 3] += np.array([2.0, 0.0, 0.0])
+    assert not np.array_equal(eval_world.render_object_ids(scene, times, 64, cams), ids)

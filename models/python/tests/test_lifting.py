@@ -117,3 +117,38 @@ def test_object_id_lifting_refuses_a_split_without_ids(tmp_path):
     generate("validation", 1, data, processes=1)
     args = ["--data", str(data), "--run", str(tmp_path / "run"), "--steps", "1", "--batch", "1", "--context-frames", "2", "--features", "object-id"]
     assert main(args) == 2
+
+
+def test_a_feature_stream_alone_trains_on_a_model_it_starts_from(tmp_path, data):
+    """The object-id stage of c4g-tiny v2: --feature-stream-only moves the feature stream alone, and a
+    checkpoint whose feature stream has another width (another kind) gives everything else."""
+    start_run = tmp_path / "start"
+    common = ["--data", str(data), "--steps", "2", "--batch", "1", "--context-frames", "2", "--threads", "1", "--validate-every", "1000"]
+    assert main([*common, "--run", str(start_run), "--features", "encoder"]) == 0
+    run = tmp_path / "objects"
+    args = [*common, "--run", str(run), "--features", "object-id", "--feature-stream-only", "--init-from", str(start_run / "c4g-tiny.ckpt")]
+    assert main(args) == 0
+    start = torch.load(start_run / "c4g-tiny.ckpt")["state_dict"]
+    after = torch.load(run / "c4g-tiny.ckpt")["state_dict"]
+    from c4g.model import is_feature_stream
+
+    moved = [k for k in after if is_feature_stream(k[len("encoder."):])]
+    assert moved and all(after[k].shape[-1] == OBJECT_IDS or after[k].shape[0] == OBJECT_IDS or after[k].ndim == 2 for k in moved if "y_norm" in k)
+    for k, v in after.items():
+        if not is_feature_stream(k[len("encoder."):]):
+            torch.testing.assert_close(v, start[k], rtol=0, atol=1e-6, msg=k)
+    assert not torch.equal(after["encoder.gmae_decoder.y_norm.weight"], torch.ones(OBJECT_IDS))
+    assert main([*common, "--run", str(tmp_path / "bad"), "--features", "object-id", "--feature-stream-only"]) == 2
+
+
+def test_segmentation_iou_is_the_objects_mean_and_leaves_the_stage_out():
+    from c4g.segmentation import iou
+
+    truth = np.zeros((4, 4), np.uint8)
+    truth[:2, :2] = 1
+    predicted = truth.copy()
+    assert iou(predicted, truth) == 1.0
+    predicted[0, 0] = 0  # object 1: 3 of 4 pixels
+    predicted[3, 3] = 2  # object 2: in the prediction only
+    assert iou(predicted, truth) == pytest.approx((3 / 4 + 0.0) / 2)
+    assert iou(np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.uint8)) is None

@@ -82,3 +82,29 @@ def test_a_run_over_strides_and_context_sizes_records_its_recipe_and_policy(tmp_
     assert all(s["stride"] in (2, 4) and s["T"] in (2, 3, 4) for s in steps)
     # Eight context frames at stride 4 span 29 frames: no clip of 13 holds them.
     assert main([*common, "--context-frames", "8", "--strides", "4", "--run", str(tmp_path / "bad")]) == 2
+
+
+def test_a_run_from_a_checkpoint_starts_from_its_weights_and_caps_its_targets(tmp_path):
+    """`--init-from` (c4g-tiny v2 starts from v1): before any step the training model decodes as the
+    checkpoint does, the head gain taken back out; `--targets-per-window` renders at most that many
+    targets a window. With lr 0 the run ends on the checkpoint's weights exactly."""
+    import json
+
+    data = tmp_path / "data"
+    generate("train", 2, data, processes=1, world=2, frames=13)
+    generate("validation", 1, data, processes=1, world=2, frames=13)
+    start = tmp_path / "start.ckpt"
+    model = C4G(TINY)
+    initialise(model, seed=5)
+    attach_gain(model)
+    torch.save({"state_dict": official_state_dict(model)}, start)
+    run = tmp_path / "run"
+    args = ["--data", str(data), "--steps", "2", "--batch", "1", "--threads", "1", "--validate-every", "1000", "--lr", "0",
+            "--context-frames", "3", "--strides", "4", "--targets-per-window", "2", "--init-from", str(start), "--run", str(run)]
+    assert main(args) == 0
+    before = torch.load(start)["state_dict"]
+    after = torch.load(run / "c4g-tiny.ckpt")["state_dict"]
+    for k in before:
+        torch.testing.assert_close(after[k], before[k], rtol=1e-6, atol=1e-7, msg=k)
+    recipe = json.loads((run / "recipe.json").read_text())
+    assert recipe["targets_per_window"] == 2 and len(recipe["init_from_sha256"]) == 64
