@@ -20,8 +20,9 @@
 //! package's feature requests (422 `unsupported`, saying what is missing): accepting them means an
 //! upload option carrying per-frame masks that must be cropped, resized and sampled exactly as the
 //! frames are, be part of the clip's content address and live in the store beside the features;
-//! that is an intake feature of its own, and no served package needs it yet (c4g-tiny v2 lifts its
-//! encoder's features).
+//! that is an intake feature of its own, and the default package does not need it (c4g-tiny lifts
+//! its encoder's features; `models/c4g-tiny-objects`, which lifts object ids, is scored offline by
+//! `c4g.segmentation`).
 
 use std::num::NonZeroUsize;
 use std::sync::{Arc, Mutex, PoisonError};

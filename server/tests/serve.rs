@@ -141,5 +141,5 @@ fn without_flags_it_serves_the_trained_default_model() {
     let models: serde_json::Value = serde_json::from_str(&body).unwrap();
     assert_eq!(models["models"][0]["name"], "c4g-tiny");
     assert_eq!(models["models"][0]["gaussians_per_set"], 512);
-    assert_eq!(models["models"][0]["training"]["steps"], 2400);
+    assert_eq!(models["models"][0]["training"]["steps"], 900);
 }

@@ -5,7 +5,7 @@
 //                   [--size 256] [--chromium /usr/bin/chromium]
 //
 // In DIR: moving-0.png, moving-1.png, moving-2.png (the canvas at three times, the last from an
-// orbited camera, with sets from the compact stream at its finest bound, `?position_error=1e-5`),
+// orbited camera, with sets from the compact stream at a fine bound, `?position_error=1e-4`),
 // moving-default.png (the last time again, with the stream at its default bound, as a user's page
 // fetches it), moving-exact.png (the same with exact f32 sets from the older C4GS transport,
 // `?precision=f32`), static-0.png and static-1.png (a clip of one frame repeated, uploaded
@@ -204,9 +204,10 @@ async function main() {
     page.on('pageerror', (e) => console.error(`[page error] ${e.message}`));
     page.setDefaultTimeout(TIMEOUT_MS);
 
-    // The stream at its finest bound first: the images then differ by the renderers (and sets
-    // within 1e-5 of position, 4.9e-4 of the rest) alone.
-    await page.goto(`${a.base}/viewer/${a.clip}?size=${a.size}&position_error=1e-5`);
+    // The stream at a fine bound first: the images then differ by the renderers (and sets
+    // within 1e-4 of position, 4.9e-4 of the rest) alone. Not the finest, 1e-5: its range is
+    // ±10 scene units, and c4g-tiny v2 puts far walls beyond that.
+    await page.goto(`${a.base}/viewer/${a.clip}?size=${a.size}&position_error=1e-4`);
     let s = await settled(page, 0, a.clip);
     result.target = s.target;
     result.footprint = s.footprint;

@@ -61,7 +61,7 @@ STATED_IN_WORDS = [
     (r"POST /v1/clips/\{id\}/segment", 400, r"outside the clip's context span|outside the \d+x\d+ image|shows nothing to select|the feature has \d+ values|not all zeros"),
     (r"POST /v1/clips/\{id\}/segment", 413, r"times in one request|pixels in all"),
     (r"POST /v1/clips/\{id\}/(gaussians|render|tracks|segment)", 422, r"no feature decoder|do not go together: the feature decoder decodes every query"),
-    (r"POST /v1/clips/\{id\}/(stream|export)", 400, r"outside the clip's context span|is after end|make \d+ keyframes"),
+    (r"POST /v1/clips/\{id\}/(stream|export)", 400, r"outside the clip's context span|is after end|make \d+ keyframes|beyond C4GV's range"),
     (r"POST /v1/clips/\{id\}/(stream|export)", 413, r"sets in one stream|C4G_MAX_EXPORT_MIB|frames in one zip"),
     (r"POST /v1/clips/\{id\}/refine", 400, r"a divisor of that|shape of text_embedding"),
     (r"GET /v1/jobs/\{id\}/result", 400, r"its result exists once it is done"),

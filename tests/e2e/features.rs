@@ -5,8 +5,9 @@
 //! composite the per-Gaussian features by the rasterizer's weights; the PCA colouring is the one
 //! basis fitted on the context times' features, at every time; a click's segment holds the
 //! clicked pixel's main Gaussian and its mask covers the pixel; the feature tracker answers over
-//! REST and gRPC alike; and c4g-tiny, which has no feature decoder, refuses each of them with 422
-//! `unsupported` (gRPC `INVALID_ARGUMENT`, kind `unsupported`).
+//! REST and gRPC alike; a package without a feature decoder refuses each of them with 422
+//! `unsupported` (gRPC `INVALID_ARGUMENT`, kind `unsupported`), and so does one whose feature
+//! decoder lifts object ids (`models/c4g-tiny-objects`), which need masks no upload carries.
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
 use c4g_e2e::{Server, binary, json_of, ort_available, post_json, upload_synthetic, workspace};
@@ -561,12 +562,30 @@ fn a_click_segments_its_gaussians_and_the_feature_tracker_answers_on_both_transp
     assert_eq!(grpc_segment.masks.len(), 2);
 }
 
+/// A copy of the plain decoder-forms fixture with its feature decoder taken out, in `dir`.
+fn package_without_feature_decoder(dir: &std::path::Path) -> String {
+    let source = workspace().join("models/fixtures/decoder-forms/plain");
+    for file in ["encoder.onnx", "decoder.onnx"] {
+        std::fs::copy(source.join(file), dir.join(file)).unwrap();
+    }
+    let mut manifest: Value =
+        serde_json::from_slice(&std::fs::read(source.join("model.json")).unwrap()).unwrap();
+    manifest["files"]
+        .as_object_mut()
+        .unwrap()
+        .remove("feature_decoder");
+    manifest.as_object_mut().unwrap().remove("feature_decoder");
+    std::fs::write(dir.join("model.json"), manifest.to_string()).unwrap();
+    dir.to_str().unwrap().to_owned()
+}
+
 #[test]
 fn a_package_without_a_feature_decoder_refuses_each_feature_request() {
     if !ort_available() {
         return;
     }
-    let server = Server::start(&[]);
+    let package = tempfile::tempdir().unwrap();
+    let server = Server::start(&["--model", &package_without_feature_decoder(package.path())]);
     let id = upload_synthetic(&server);
     let refusals = [
         ("gaussians", json!({"t": 0.1, "features": true})),
@@ -649,4 +668,32 @@ fn a_package_without_a_feature_decoder_refuses_each_feature_request() {
             );
         }
     });
+}
+
+#[test]
+fn a_package_that_lifts_object_ids_refuses_feature_requests_and_says_why() {
+    if !ort_available() {
+        return;
+    }
+    let server = Server::start(&["--model", "models/c4g-tiny-objects"]);
+    let id = upload_synthetic(&server);
+    let response = post_json(
+        &server,
+        &format!("/v1/clips/{id}/render"),
+        &json!({"t": 0.1, "format": "features_pca"}),
+    );
+    assert_eq!(response.status(), 422);
+    let error: Value = response.json().unwrap();
+    assert_eq!(error["kind"], "unsupported", "{error}");
+    assert!(
+        error["error"].as_str().unwrap().contains("object-id"),
+        "{error}"
+    );
+    // Its Gaussians are served as any package's.
+    let decode = post_json(
+        &server,
+        &format!("/v1/clips/{id}/gaussians"),
+        &json!({"t": 0.1}),
+    );
+    assert_eq!(decode.status(), 200);
 }

@@ -180,8 +180,9 @@ fn positions(decoded: &Value) -> Vec<Vec<[f64; 3]>> {
 
 /// `drop_queries` (pruning's option to drop the pruned Gaussians' queries from the decoder
 /// itself): the same Gaussians as pruning alone, in REST and gRPC decodes, moved a little (queries
-/// attend to each other: on c4g-tiny's test clips up to 0.14 scene units and renders 36–39 dB
-/// from exact, `docs/tradeoffs.md`; the bounds here, 0.5 units and 25 dB, catch a decoder that
+/// attend to each other: on c4g-tiny v1's test clips up to 0.14 scene units and renders 36–39 dB
+/// from exact, `docs/tradeoffs.md`; v2 moves a far Gaussian of this synthetic clip 0.53 units;
+/// the bounds here, 1 unit and 25 dB, catch a decoder that
 /// decodes other queries than the kept ones, not the approximation's exact size); a bad value is
 /// a 400; a package whose decoder cannot drop queries refuses with 422 `unsupported`.
 #[test]
@@ -222,7 +223,7 @@ fn drop_queries_decodes_the_kept_queries_alone_and_a_package_that_cannot_is_422(
         differs,
         "dropping queries changed nothing: were they dropped?"
     );
-    assert!(largest < 0.5, "kept Gaussians moved {largest}");
+    assert!(largest < 1.0, "kept Gaussians moved {largest}");
     // With keyframes too (every exact decode runs on the kept queries).
     let keyframed = decode(
         json!({"times": targets, "keyframes": {"count": 2}, "prune": {"drop_queries": true}}),

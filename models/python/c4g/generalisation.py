@@ -111,8 +111,8 @@ def score_clip(package: Package, world: str, index: int, stride: int) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m c4g.generalisation", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def protocol_arguments(ap: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """The protocol's command line (package, clips, strides, worlds, out), parsed and checked."""
     ap.add_argument("--package", type=Path, required=True)
     ap.add_argument("--clips", type=int, default=24, help="clips per world")
     ap.add_argument("--strides", type=int, nargs="+", default=[2, 4], help="source frames between context frames (even)")
@@ -121,6 +121,23 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if any(s % 2 or s < 2 for s in args.strides):
         ap.error("strides must be even and at least 2 (targets lie half-way between context frames)")
+    return args
+
+
+def print_table(package: Package, args: argparse.Namespace, measure: str, results: dict, methods: tuple, digits: int) -> None:
+    """The results as a Markdown table, a row per (world, stride) and view."""
+    name = package.manifest.get("name", args.package.name)
+    print(f"{name} ({args.package}), {args.clips} clips per world, 64 x 64, 10 fps, 4 context frames; {measure}\n")
+    print("| world, stride | view | " + " | ".join(methods) + " |")
+    print("|---|---|" + "---|" * len(methods))
+    for key, scores in results.items():
+        for view in ("interpolated", "novel"):
+            print(f"| {key} | {view} | " + " | ".join("—" if scores[m][view] is None else f"{scores[m][view]:.{digits}f}" for m in methods) + " |")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m c4g.generalisation", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    args = protocol_arguments(ap, argv)
     package = Package(args.package)
     results: dict = {}
     for world in args.worlds:
@@ -130,13 +147,7 @@ def main(argv: list[str] | None = None) -> int:
                 name: {view: float(np.mean([c[name][view] for c in clips])) for view in ("interpolated", "novel")} for name in METHODS
             }
             print(f"{world}, stride {stride}: done", file=sys.stderr, flush=True)
-    name = package.manifest.get("name", args.package.name)
-    print(f"{name} ({args.package}), {args.clips} clips per world, 64 x 64, 10 fps, 4 context frames; mean PSNR (dB)\n")
-    print("| world, stride | view | " + " | ".join(METHODS) + " |")
-    print("|---|---|" + "---|" * len(METHODS))
-    for key, scores in results.items():
-        for view in ("interpolated", "novel"):
-            print(f"| {key} | {view} | " + " | ".join(f"{scores[m][view]:.2f}" for m in METHODS) + " |")
+    print_table(package, args, "mean PSNR (dB)", results, METHODS, 2)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "generalisation.json").write_text(json.dumps({"package": str(args.package), "clips": args.clips, "results": results}, indent=1))

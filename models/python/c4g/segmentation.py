@@ -28,7 +28,7 @@ import torch.nn.functional as F
 
 from . import eval_world, synthetic
 from .evaluate import novel_pose, novel_world_poses, quantise
-from .generalisation import WORLDS, Package, world_clip
+from .generalisation import Package, print_table, protocol_arguments, world_clip
 from .render_torch import render
 from .time_policy import normalise_batch
 from .train import INTRINSICS_NORMALISED, split_canonical
@@ -116,14 +116,7 @@ def score_clip(package: ObjectPackage, world: str, index: int, stride: int) -> d
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m c4g.segmentation", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--package", type=Path, required=True)
-    ap.add_argument("--clips", type=int, default=24, help="clips per world")
-    ap.add_argument("--strides", type=int, nargs="+", default=[2, 4], help="source frames between context frames (even)")
-    ap.add_argument("--worlds", nargs="+", default=list(WORLDS), choices=WORLDS)
-    ap.add_argument("--out", type=Path)
-    args = ap.parse_args(argv)
-    if any(s % 2 or s < 2 for s in args.strides):
-        ap.error("strides must be even and at least 2 (targets lie half-way between context frames)")
+    args = protocol_arguments(ap, argv)
     try:
         package = ObjectPackage(args.package)
     except ValueError as e:
@@ -139,13 +132,7 @@ def main(argv: list[str] | None = None) -> int:
                         pooled[m][view].extend(values)
             results[f"{world}, stride {stride}"] = {m: {v: float(np.mean(x)) if x else None for v, x in views.items()} for m, views in pooled.items()}
             print(f"{world}, stride {stride}: done", file=sys.stderr, flush=True)
-    name = package.manifest.get("name", args.package.name)
-    print(f"{name} ({args.package}), {args.clips} clips per world, 64 x 64, 10 fps, 4 context frames; mean object IoU\n")
-    print("| world, stride | view | " + " | ".join(METHODS) + " |")
-    print("|---|---|" + "---|" * len(METHODS))
-    for key, scores in results.items():
-        for view in ("interpolated", "novel"):
-            print(f"| {key} | {view} | " + " | ".join(f"{scores[m][view]:.3f}" for m in METHODS) + " |")
+    print_table(package, args, "mean object IoU", results, METHODS, 3)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "segmentation.json").write_text(json.dumps({"package": str(args.package), "clips": args.clips, "results": results}, indent=1))

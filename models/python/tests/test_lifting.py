@@ -152,3 +152,14 @@ def test_segmentation_iou_is_the_objects_mean_and_leaves_the_stage_out():
     predicted[3, 3] = 2  # object 2: in the prediction only
     assert iou(predicted, truth) == pytest.approx((3 / 4 + 0.0) / 2)
     assert iou(np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.uint8)) is None
+
+
+def test_the_object_id_loss_prefers_the_right_small_object_to_the_majority():
+    """L1 against one-hot ids rewards 'stage everywhere'; the balanced cross-entropy does not."""
+    model = C4G(TINY)
+    ids = torch.zeros(1, 8, 8, dtype=torch.long)
+    ids[0, :2, :2] = 1  # a small object: 4 of 64 pixels
+    target = torch.nn.functional.one_hot(ids, OBJECT_IDS).float()
+    stage_everywhere = torch.nn.functional.one_hot(torch.zeros_like(ids), OBJECT_IDS).float() * 4
+    right = target * 4
+    assert float(lifting.loss(model, right, target, "object-id")) < float(lifting.loss(model, stage_everywhere, target, "object-id"))

@@ -4,7 +4,8 @@
 //! Chunked HTTP rather than a WebSocket: the data flows one way, `fetch()` hands a page the body
 //! piece by piece (`response.body.getReader()`), aborting the fetch ends the decoding (the reader
 //! is gone, so the next set is not decoded), HTTP/1.1 proxies pass it as they are, and the errors
-//! before the first byte are the service's usual JSON answers. An error after the first byte
+//! before the first byte (the first set is made before the headers go) are the service's usual
+//! JSON answers. An error after the first byte
 //! cannot change the status: the body then ends without the stream's index record, which a
 //! reader sees as a stream cut short (and the server logs why).
 
@@ -73,12 +74,22 @@ pub async fn stream(
     };
     let sets = service.stream(&id, &stream).await?;
     let count = sets.times.len();
-    let body = sets.compact(options).map(move |piece| {
-        piece.map(|(_, bytes)| bytes).map_err(|e| {
-            tracing::warn!(clip = %id, "a compact stream ended early: {e}");
-            std::io::Error::other(e.to_string())
-        })
-    });
+    // The first set goes out with the headers: a stream that cannot even begin (a first set beyond
+    // the stream's range at this position error, for instance) is then the usual JSON error, and
+    // only a failure later in the stream cuts a 200 body short.
+    let mut pieces = Box::pin(sets.compact(options));
+    let first = match pieces.next().await {
+        Some(piece) => Some(piece?),
+        None => None,
+    };
+    let body = futures_util::stream::iter(first.map(Ok))
+        .chain(pieces)
+        .map(move |piece| {
+            piece.map(|(_, bytes)| bytes).map_err(|e| {
+                tracing::warn!(clip = %id, "a compact stream ended early: {e}");
+                std::io::Error::other(e.to_string())
+            })
+        });
     Ok((
         [
             (header::CONTENT_TYPE, CONTENT_TYPE.to_owned()),
