@@ -281,11 +281,12 @@ fn drop_queries_decodes_the_kept_queries_alone_and_a_package_that_cannot_is_422(
     // c4g-tiny without `decoder_query_subset` in its manifest: a package whose decoder cannot.
     let package = tempfile::tempdir().unwrap();
     let tiny = c4g_e2e::workspace().join("models/c4g-tiny");
-    for file in ["encoder.onnx", "decoder.onnx"] {
-        std::fs::copy(tiny.join(file), package.path().join(file)).unwrap();
-    }
     let mut manifest: Value =
         serde_json::from_slice(&std::fs::read(tiny.join("model.json")).unwrap()).unwrap();
+    for file in manifest["files"].as_object().unwrap().values() {
+        let file = file.as_str().unwrap();
+        std::fs::copy(tiny.join(file), package.path().join(file)).unwrap();
+    }
     manifest
         .as_object_mut()
         .unwrap()
