@@ -32,6 +32,7 @@ import torch
 from onnx import numpy_helper
 
 from .config import C4GConfig
+from .decoder import to_canonical
 from .export import export_package
 from .model import C4G
 
@@ -94,9 +95,7 @@ def _place(value: np.ndarray, params: dict[str, np.ndarray], index: dict[float, 
                 for j in np.flatnonzero(p[:, 0] == value[0, 0]):
                     if np.array_equal(p[j : j + value.shape[1]].T, value):
                         return [(name, True, int(j), 0, value.size)]
-            if p.ndim == 2 and p.shape == value.shape[::-1] and np.array_equal(p.T, value) and p.shape[0] != p.shape[1]:
-                return [(name, True, 0, 0, value.size)]
-            if p.ndim == 2 and p.shape == value.shape and p.shape[0] == p.shape[1] and np.array_equal(p.T, value):
+            if p.ndim == 2 and p.T.shape == value.shape and np.array_equal(p.T, value):
                 return [(name, True, 0, 0, value.size)]
     flat, pieces, i = value.ravel(), [], 0
     while i < flat.size:
@@ -160,9 +159,8 @@ def recover(package: Path, cfg: C4GConfig) -> dict[str, torch.Tensor]:
     for graph, path in _graph_paths(package).items():
         actual, actual_uses = _initializers(path)
         probe_values, probe_uses = probe[graph]
-        probe_at = {use: name for use, name in probe_uses.items()}
         for use, name in actual_uses.items():
-            twin = name if name in probe_values else probe_at.get(use)
+            twin = name if name in probe_values else probe_uses.get(use)
             placed = _place(probe_values[twin], params, index) if twin is not None and probe_values[twin].shape == actual[name].shape else None
             if placed is not None:
                 put(placed, actual[name])
@@ -205,7 +203,6 @@ def verify(package: Path, model: C4G, seed: int = 0) -> float:
     dec = ort.InferenceSession(str(paths["decoder"]), providers=["CPUExecutionProvider"])
     names = {i.name for i in dec.get_inputs()}
     theirs = dec.run(None, {k: v for k, v in feeds.items() if k in names})[0]
-    from .decoder import to_canonical
 
     with torch.no_grad():
         f = model.encode(torch.from_numpy(frames))
