@@ -12,7 +12,7 @@
 use std::collections::HashMap;
 use std::fs::File;
 use std::io::{Read, Seek, SeekFrom};
-use std::path::{Path, PathBuf};
+use std::path::{Component, Path, PathBuf};
 
 use prost::Message;
 use prost::bytes::Bytes;
@@ -144,6 +144,37 @@ impl Initializer {
     pub fn is_external(&self) -> bool {
         matches!(self.storage, Storage::External { .. })
     }
+
+    /// Where in a side file the values live: the file (relative to the model's folder) and the
+    /// byte offset.
+    pub fn external_location(&self) -> Option<(&str, u64)> {
+        match &self.storage {
+            Storage::External {
+                location, offset, ..
+            } => Some((location, *offset)),
+            _ => None,
+        }
+    }
+}
+
+/// `location` (an external-data file named by a model) as a path under the model's folder:
+/// relative, with no `..`, as ONNX Runtime also requires, so that reading or writing it never
+/// leaves that folder.
+pub fn external_path(model: &Path, location: &str) -> Result<PathBuf> {
+    let relative = Path::new(location);
+    let inside = !location.is_empty()
+        && relative
+            .components()
+            .all(|c| matches!(c, Component::Normal(_) | Component::CurDir));
+    if !inside {
+        return Err(RefinerError::Onnx {
+            path: model.to_path_buf(),
+            reason: format!(
+                "external data location {location:?} is not a relative path inside the model's folder"
+            ),
+        });
+    }
+    Ok(relative.to_path_buf())
 }
 
 /// The initializers of one `.onnx` file, by name.
@@ -200,6 +231,18 @@ impl OnnxWeights {
         let mut names: Vec<&str> = self.initializers.keys().map(String::as_str).collect();
         names.sort_unstable();
         names
+    }
+
+    /// The side files the initializers' values live in (`location`s), sorted.
+    pub fn external_locations(&self) -> Vec<&str> {
+        let mut locations: Vec<&str> = self
+            .initializers
+            .values()
+            .filter_map(|i| i.external_location().map(|(location, _)| location))
+            .collect();
+        locations.sort_unstable();
+        locations.dedup();
+        locations
     }
 
     /// The values of `init` as f32 (fp16 and bf16 widen exactly).
@@ -278,7 +321,7 @@ impl OnnxWeights {
 
     fn read_external(&self, location: &str, offset: u64, length: u64) -> Result<Vec<u8>> {
         let dir = self.path.parent().unwrap_or(Path::new("."));
-        let file_path = dir.join(location);
+        let file_path = dir.join(external_path(&self.path, location)?);
         let io = RefinerError::io(&file_path);
         let mut file = File::open(&file_path).map_err(RefinerError::io(&file_path))?;
         file.seek(SeekFrom::Start(offset))
@@ -477,6 +520,19 @@ mod tests {
         let err = w.read_f32(w.get("short").unwrap()).unwrap_err();
         assert!(err.to_string().contains("short"), "{err}");
         assert!(w.read_f32(w.get("ints").unwrap()).is_err());
+    }
+
+    #[test]
+    fn external_locations_stay_inside_the_models_folder() {
+        let model = Path::new("/pkg/transformer.onnx");
+        assert_eq!(
+            external_path(model, "weights/transformer.onnx.data").unwrap(),
+            Path::new("weights/transformer.onnx.data")
+        );
+        for bad in ["", "../x.data", "/etc/passwd", "a/../../x", "./x/../../y"] {
+            let err = external_path(model, bad).unwrap_err().to_string();
+            assert!(err.contains("inside the model's folder"), "{bad:?}: {err}");
+        }
     }
 
     #[test]

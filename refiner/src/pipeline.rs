@@ -16,21 +16,20 @@
 //! already merged into its weights.
 
 use std::ops::ControlFlow;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use c4g_runtime::{Graph, RuntimeError, SessionOptions, create_session};
 use ort::value::TensorRef;
 
 use crate::control::{self, LatentStats, Mask};
 use crate::layout::{self, Keyframe};
-use crate::lora::merge::merged_weights;
 use crate::lora::{Lora, LoraSpec};
 use crate::noise::gaussian_noise;
 use crate::onnx::OnnxWeights;
 use crate::package::{KeyframeLayout, Layout, RefinerManifest, RefinerPackage};
 use crate::sampler::{Sampler, Schedule, Solver};
 use crate::text::TextEncoder;
-use crate::weights_session::create_session_with_weights;
+use crate::weights_session::create_session_with_lora;
 use crate::{RefinerError, Result};
 
 /// How a [`Pipeline`] is built.
@@ -38,6 +37,10 @@ use crate::{RefinerError, Result};
 pub struct PipelineOptions {
     /// A LoRA merged into the transformer at load.
     pub lora: Option<LoraSpec>,
+    /// Where the merge writes its copy of the transformer's external data (the system's
+    /// temporary folder when `None`): it needs room for that data (8.6 GB at the 1.3B size in
+    /// f32) until the worker has started, and on a RAM-backed file system that room is memory.
+    pub merge_dir: Option<PathBuf>,
     /// How the graphs' sessions are configured: threads, execution provider, CPU arena.
     pub session: SessionOptions,
     /// Leave the package's text encoder unloaded (umT5-XXL is ~23 GB): prompts must then come
@@ -173,11 +176,14 @@ impl Pipeline {
             Some(spec) => {
                 let lora = Lora::load(&spec.path)?;
                 let weights = OnnxWeights::open(&transformer_path)?;
-                let merged = merged_weights(&lora, &weights, spec.scale)?;
-                let count = merged.len();
-                let transformer =
-                    create_session_with_weights(&transformer_path, session, &weights, merged)?;
-                (transformer, count)
+                create_session_with_lora(
+                    &transformer_path,
+                    session,
+                    &weights,
+                    &lora,
+                    spec.scale,
+                    options.merge_dir.as_deref(),
+                )?
             }
             None => (create_session(&transformer_path, session)?, 0),
         };

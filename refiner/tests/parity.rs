@@ -402,14 +402,39 @@ fn lora_merges_into_external_data_as_into_inline_weights() {
                 b.read_f32(b.get(name).unwrap()).unwrap()
             );
         }
+        let data_files = || {
+            let mut files: Vec<(std::path::PathBuf, Vec<u8>)> = std::fs::read_dir(dir.path())
+                .unwrap()
+                .map(|e| e.unwrap().path())
+                .filter(|p| p.extension().is_some_and(|e| e == "data"))
+                .map(|p| (p.clone(), std::fs::read(&p).unwrap()))
+                .collect();
+            files.sort();
+            files
+        };
+        let before = data_files();
+        assert!(!before.is_empty(), "{what}: no external data file");
+        let scratch = tempfile::tempdir().unwrap();
         let options = PipelineOptions {
             lora: Some(LoraSpec {
                 path: fixture_dir().join("lora/peft/adapter_model.safetensors"),
                 scale: 1.0,
             }),
+            merge_dir: Some(scratch.path().to_path_buf()),
             ..PipelineOptions::default()
         };
         let p = Pipeline::load(dir.path(), &options).unwrap();
+        // The merge wrote into a copy of the external data, which is gone once the session
+        // exists; the package's own files are as they were.
+        assert_eq!(
+            std::fs::read_dir(scratch.path()).unwrap().count(),
+            0,
+            "{what}: the merge's scratch folder was left behind"
+        );
+        assert!(
+            data_files() == before,
+            "{what}: the package's external data changed"
+        );
         let got = check_run(&p, "pipeline_unipc_lora.npz", Sampler::UniPc);
         let (diff, _) = max_abs_diff(&got.latents, &expected.latents);
         eprintln!(

@@ -36,6 +36,12 @@ struct Args {
     /// The LoRA's strength (multiplies its own alpha / rank scale).
     #[arg(long, env = "C4G_REFINER_LORA_SCALE", default_value_t = 1.0)]
     lora_scale: f32,
+    /// Where merging the LoRA writes its copy of the transformer's external data (default: the
+    /// system's temporary folder). It needs room for the transformer's weights (8.6 GB at the
+    /// 1.3B size in f32) while the worker starts, and is emptied once it has; on a RAM-backed file
+    /// system (tmpfs) that room is memory, so point it at a disk.
+    #[arg(long, env = "C4G_REFINER_MERGE_DIR")]
+    merge_dir: Option<PathBuf>,
     /// The server's API key, if it has one.
     #[arg(long, env = "C4G_API_KEY", hide_env_values = true)]
     api_key: Option<String>,
@@ -72,6 +78,7 @@ async fn main() -> ExitCode {
             path,
             scale: args.lora_scale,
         }),
+        merge_dir: args.merge_dir.clone(),
         session: SessionOptions {
             intra_op_threads: args.intra_op_threads,
             ..SessionOptions::default()

@@ -56,53 +56,82 @@ pub fn initializer_name(module: &LoraModule) -> String {
 }
 
 /// Every weight `lora` adapts, merged at `scale` (times the file's own scale per module), in
-/// name order.
+/// name order, all held at once (see [`merge_each`] for one batch at a time).
 ///
 /// Each module must land on a floating-point initializer `<module>.weight` of `weights` whose
 /// shape is `[out, in…]` for the LoRA's `[out, r]` and `[r, in…]`; otherwise this fails naming the
 /// key. With `scale == 0` every module is still checked, but nothing is merged: the result is
 /// empty and the base model runs bit for bit.
 pub fn merged_weights(lora: &Lora, weights: &OnnxWeights, scale: f32) -> Result<Vec<MergedWeight>> {
+    let mut merged = Vec::new();
+    merge_each(lora, weights, scale, |w| {
+        merged.push(w);
+        Ok(())
+    })?;
+    Ok(merged)
+}
+
+/// [`merged_weights`], handed to `sink` one by one in name order as they are made, so that only a
+/// batch (one weight per thread) is in memory at a time: at the 1.3B size the merged weights are
+/// gigabytes. Every module is placed and checked before the first merge. Returns how many were
+/// merged.
+pub fn merge_each(
+    lora: &Lora,
+    weights: &OnnxWeights,
+    scale: f32,
+    mut sink: impl FnMut(MergedWeight) -> Result<()>,
+) -> Result<usize> {
     if !scale.is_finite() {
         return Err(RefinerError::Lora {
             path: lora.path().to_path_buf(),
             reason: format!("the LoRA scale must be finite, got {scale}"),
         });
     }
-    let targets = lora
+    let mut targets = lora
         .modules()
         .iter()
         .map(|m| place(lora, weights, m).map(|init| (m, init)))
         .collect::<Result<Vec<_>>>()?;
     if scale == 0.0 {
-        return Ok(Vec::new());
+        return Ok(0);
     }
-    let mut merged = targets
-        .into_par_iter()
-        .map(|(module, init)| {
-            let mut values = weights.read_f32(init)?;
-            merge_into(&mut values, module, scale).map_err(|reason| RefinerError::Lora {
-                path: lora.path().to_path_buf(),
-                reason,
-            })?;
-            let values = match init.element_type() {
-                Some(ElementType::F16) => {
-                    WeightValues::F16(values.iter().map(|&v| half::f16::from_f32(v)).collect())
-                }
-                Some(ElementType::Bf16) => {
-                    WeightValues::Bf16(values.iter().map(|&v| half::bf16::from_f32(v)).collect())
-                }
-                _ => WeightValues::F32(values),
-            };
-            Ok(MergedWeight {
-                name: init.name().to_owned(),
-                dims: init.dims().to_vec(),
-                values,
-            })
-        })
-        .collect::<Result<Vec<_>>>()?;
-    merged.sort_by(|a, b| a.name.cmp(&b.name));
-    Ok(merged)
+    targets.sort_by(|a, b| a.1.name().cmp(b.1.name()));
+    for batch in targets.chunks(rayon::current_num_threads().max(1)) {
+        let merged = batch
+            .par_iter()
+            .map(|&(module, init)| merge_one(lora, weights, module, init, scale))
+            .collect::<Result<Vec<_>>>()?;
+        merged.into_iter().try_for_each(&mut sink)?;
+    }
+    Ok(targets.len())
+}
+
+fn merge_one(
+    lora: &Lora,
+    weights: &OnnxWeights,
+    module: &LoraModule,
+    init: &Initializer,
+    scale: f32,
+) -> Result<MergedWeight> {
+    let mut values = weights.read_f32(init)?;
+    merge_into(&mut values, module, scale).map_err(|reason| RefinerError::Lora {
+        path: lora.path().to_path_buf(),
+        reason,
+    })?;
+    let values = match init.element_type() {
+        Some(ElementType::F16) => {
+            WeightValues::F16(values.iter().map(|&v| half::f16::from_f32(v)).collect())
+        }
+        Some(ElementType::Bf16) => {
+            WeightValues::Bf16(values.iter().map(|&v| half::bf16::from_f32(v)).collect())
+        }
+        _ => WeightValues::F32(values),
+    };
+    Ok(MergedWeight {
+        name: init.name().to_owned(),
+        dims: init.dims().to_vec(),
+        values,
+    })
 }
 
 /// The initializer `module` adapts, checked for type and shape.

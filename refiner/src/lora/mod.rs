@@ -9,10 +9,13 @@
 //! - original-Wan files (`diffusion_model.<module>.lora_down.weight`, `lora_up.weight`) may carry a
 //!   scalar `<module>.alpha`; without one (and without a config) alpha = r, scale 1.
 //!
-//! The merge happens once, at load: [`merge::merged_weights`] computes `W + scale·B·A` in f32 for
-//! every adapted module and the pipeline hands the results to ONNX Runtime as initializer
-//! overrides; no rewritten model is written anywhere. Every key must land on an initializer of the
-//! transformer with the right shape, or loading fails naming the key.
+//! The merge happens once, at load: [`merge::merge_each`] computes `W + scale·B·A` in f32 for
+//! every adapted module, a batch at a time, and the pipeline writes the results over the weights'
+//! bytes in a copy of the model that ONNX Runtime then loads (`weights_session`: a scratch copy of
+//! the external data, deleted once the session exists). Every key must land on an initializer of
+//! the transformer with the right shape, or loading fails naming the key. A package can instead
+//! have the LoRA merged in when it is exported (`python -m c4g.wan.export --lora`), before its
+//! weights are rounded to f16.
 
 pub mod merge;
 pub mod names;

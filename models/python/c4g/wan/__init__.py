@@ -3,7 +3,11 @@
 - `configs`: the real 1.3B configuration and the tiny random-weight stand-in (same structure, CPU-sized).
 - `onnx_graphs`: the transformer and VAE encoder / decoder as ONNX graphs (parameter names kept, fused
   attention, fixed shapes).
-- `lora`: LoRA files in PEFT and original-Wan naming, the module-name map between them.
+- `lora`: LoRA files in PEFT and original-Wan naming, the module-name map between them, and the merge at
+  export (`merge_into_transformer`: `export --lora`, before `--fp16` rounds the weights).
 - `reference`: diffusers' WanVACEPipeline runs and schedules that the Rust refiner must reproduce.
 - `export`: the command line (`python -m c4g.wan.export`) and the refiner package format (refiner.json).
+- `check_merged`: a package with its LoRA merged at export against diffusers' f32 module with it merged.
+- `bench_startup`, `bench_external_initializers`, `bench_layouts`: the worker's start-up memory, how ONNX
+  Runtime holds external weights, and C4G's layout against VACE's (docs/benchmarks.md).
 """

@@ -4,10 +4,16 @@ without a LoRA over every linear of the main blocks (random factors; only the sh
 
     cargo build --release -p c4g-refiner
     python -m c4g.wan.bench_startup --package /tmp/wan13b --binary ../../target/release/c4g-refiner
+    # two builds in one sitting (e.g. before and after a change), and a second package:
+    python -m c4g.wan.bench_startup --package /tmp/wan13b --package /tmp/wan13b-f16 \
+        --binary before=/tmp/c4g-refiner-before --binary after=../../target/release/c4g-refiner
 
-The package is any refiner package (e.g. `python -m c4g.wan.export --random-init --config 1.3b ...`);
-its `refiner.json` gives the transformer config the LoRA is shaped for. Numbers go with the machine
-into docs/benchmarks.md.
+A package is any refiner package (e.g. `python -m c4g.wan.export --random-init --config 1.3b ...`);
+its `refiner.json` gives the transformer config the LoRA is shaped for. `--write-lora DIR` only
+writes the LoRA (to merge it at export: `python -m c4g.wan.export ... --lora DIR/adapter_model.safetensors`).
+Resident memory is split into anonymous memory and mapped files (ONNX Runtime maps aligned external
+data): the kernel can drop mapped file pages under pressure, not anonymous ones. Numbers go with the
+machine into docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -47,7 +53,7 @@ def write_lora(package: Path, out: Path, rank: int, seed: int = 0) -> int:
 
 
 def _status(pid: int, key: str) -> str:
-    line = next(l for l in Path(f"/proc/{pid}/status").read_text().splitlines() if l.startswith(key))
+    line = next(l for l in Path(f"/proc/{pid}/status").read_text().splitlines() if l.startswith(key + ":"))
     return f"{int(line.split()[1]) / 1e6:.1f} GB"
 
 
@@ -67,25 +73,37 @@ def time_startup(binary: str, package: Path, extra: list[str]) -> str:
     elapsed = time.monotonic() - start
     peak = _status(proc.pid, "VmHWM")
     time.sleep(5)
-    settled = _status(proc.pid, "VmRSS")
+    settled = ", ".join(f"{key} {_status(proc.pid, key)}" for key in ("VmRSS", "RssAnon", "RssFile"))
     proc.kill()
     proc.wait()
-    return f"{elapsed:.1f} s to ready, peak {peak}, {settled} once ready"
+    return f"{elapsed:.1f} s to ready, peak {peak}; once ready {settled}"
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--package", required=True, type=Path)
-    parser.add_argument("--binary", required=True)
+    parser.add_argument("--package", type=Path, action="append", help="a refiner package (repeatable)")
+    parser.add_argument("--binary", action="append", help="c4g-refiner, or LABEL=PATH (repeatable: started in turns)")
     parser.add_argument("--rank", type=int, default=128)
     parser.add_argument("--runs", type=int, default=2)
+    parser.add_argument("--write-lora", type=Path, metavar="DIR", help="only write the LoRA for the first --package into DIR")
     args = parser.parse_args(argv)
+    if not args.package:
+        parser.error("--package is required")
+    if args.write_lora:
+        args.write_lora.mkdir(parents=True, exist_ok=True)
+        print(f"LoRA: rank {args.rank}, {write_lora(args.package[0], args.write_lora, args.rank)} parameters in {args.write_lora}")
+        return 0
+    if not args.binary:
+        parser.error("--binary is required")
+    binaries = [b.split("=", 1) if "=" in b else [b, b] for b in args.binary]
     with tempfile.TemporaryDirectory() as tmp:
-        params = write_lora(args.package, Path(tmp), args.rank)
+        params = write_lora(args.package[0], Path(tmp), args.rank)
         print(f"LoRA: rank {args.rank}, {params} parameters", flush=True)
         for _ in range(args.runs):
-            for label, extra in (("no LoRA", []), ("LoRA merged", ["--lora", str(Path(tmp) / "adapter_model.safetensors")])):
-                print(f"{label}: {time_startup(args.binary, args.package, extra)}", flush=True)
+            for package in args.package:
+                for label, binary in binaries:
+                    for what, extra in (("no LoRA", []), ("LoRA merged", ["--lora", str(Path(tmp) / "adapter_model.safetensors")])):
+                        print(f"{package.name} · {label} · {what}: {time_startup(binary, package, extra)}", flush=True)
     return 0
 
 

@@ -52,6 +52,9 @@ VAE encoder ~4e-7, VAE decoder ~1e-5 max abs (tests assert 1e-4); f16 transforme
   transformer's `positions`: int64 [F'], each latent frame's temporal RoPE index, VACE's 0..F'-1;
   every export has it but the tiny VACE fixture's, made before it existed).
 - `weight_names` "diffusers": transformer initializers are named as diffusers' parameters, [out, in].
+- `lora_merged` (only with `--lora`): the LoRA already merged into the transformer's weights, before
+  `--fp16` rounded them: `file`, `sha256`, `naming` ("peft" | "wan"), `scale`, `modules` (how many
+  weights it adapted). A worker needs no `--lora` for it (another LoRA still merges on top).
 - `parameters`: transformer / vae (/ text_encoder) parameter counts; `onnx`: opset and IR version; `diffusers_version`.
 - `diffusers_config`: {"transformer": ..., "vae": ...}, the configs the models were built from;
   `text_encoder_config`: the umT5 config (transformers' UMT5Config), when there is an encoder.
@@ -396,7 +399,8 @@ def export_real(args) -> dict:
         from diffusers import AutoencoderKLWan, WanVACETransformer3DModel
 
         root = Path(args.diffusers)
-        dtype = torch.float16 if args.fp16 else torch.float32
+        # With a LoRA, load in f32, merge, then round (to_fp16 keeps what from_pretrained(f16) keeps).
+        dtype = torch.float16 if args.fp16 and not args.lora else torch.float32
         transformer = WanVACETransformer3DModel.from_pretrained(root, subfolder="transformer", torch_dtype=dtype).eval()
         vae = AutoencoderKLWan.from_pretrained(root, subfolder="vae", torch_dtype=torch.float32).eval()
         sched_path = root / "scheduler" / "scheduler_config.json"
@@ -407,10 +411,11 @@ def export_real(args) -> dict:
         base = PRESETS[args.config]
         transformer = build_transformer(base.transformer, args.seed)
         vae = build_vae(base.vae, args.seed)
-        if args.fp16:
-            to_fp16(transformer)
         scheduler = dict(base.scheduler)
         source = {"kind": "random-init", "seed": args.seed, "config": args.config}
+    lora_merged = lora_mod.merge_into_transformer(transformer, Path(args.lora), args.lora_scale) if args.lora else None
+    if args.fp16 and (args.lora or not args.diffusers):
+        to_fp16(transformer)
     transformer_cfg, vae_cfg = _config_dict(transformer), _config_dict(vae)
     shift = float(scheduler.get("flow_shift", base.shift))
     cfg = RefinerConfig(
@@ -438,6 +443,8 @@ def export_real(args) -> dict:
         encoder, text_config = export_real_text_encoder(args, cfg, out)
         counts["text_encoder"] = sum(p.numel() for p in encoder.parameters())
     meta = manifest(cfg, source, args.attention, "f16" if args.fp16 else "f32", counts, text_encoder=text_config)
+    if lora_merged is not None:
+        meta["lora_merged"] = lora_merged
     (out / "refiner.json").write_text(json.dumps(meta, indent=2) + "\n")
     (out / "README.md").write_text(package_readme(meta))
     return meta
@@ -643,11 +650,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--width", type=int, help="multiple of 16; default 832")
     parser.add_argument("--text-tokens", type=int, help="text embedding length; default 512")
     parser.add_argument("--fp16", action="store_true", help="f16 transformer weights (inputs / outputs stay f32)")
+    parser.add_argument("--lora", metavar="FILE", help="merge this LoRA (.safetensors, PEFT or Wan naming) into the transformer's f32 weights before --fp16 rounds them (lora.merge_into_transformer)")
+    parser.add_argument("--lora-scale", type=float, default=1.0, help="the merged LoRA's strength (times its own alpha / r)")
     parser.add_argument("--attention", choices=["fused", "plain"], default="fused")
     parser.add_argument("--external-data", action="store_true", help="weights in .onnx.data even under 2 GB")
     parser.add_argument("--device", default="cpu", help="where to trace (cuda is much faster at real sizes)")
     parser.add_argument("--text-encoder", action="store_true", help="also export umT5's encoder (~23 GB in f32) and tokenizer, so workers take captions")
     args = parser.parse_args(argv)
+    if args.tiny and args.lora:
+        parser.error("--tiny makes its own LoRA files (lora/); --lora merges one into --diffusers or --random-init weights")
     if args.tiny and args.layout == "c4g":
         meta = export_tiny_c4g(Path(args.out), args.seed, args.attention)
     elif args.tiny:

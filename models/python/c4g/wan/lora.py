@@ -23,11 +23,13 @@ raise (its converter knows no VACE names), so a Wan-named VACE LoRA has to be ma
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 from pathlib import Path
 
 import torch
+from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 PEFT_PREFIX = "transformer."
@@ -180,22 +182,29 @@ def write_lora_files(lora: dict, rank: int, alpha: float, out: Path, weight_shap
 
 def deltas_from_peft(path: Path, config: dict) -> dict[str, torch.Tensor]:
     """{ONNX initializer name: scale * B @ A} from a PEFT file (scale lora_alpha / r, or / sqrt(r) for rsLoRA)."""
+    return dict(iter_deltas_peft(path, config))
+
+
+def iter_deltas_peft(path: Path, config: dict):
+    """`deltas_from_peft`, one (name, delta) at a time (float64: at the 1.3B size all of them are 11 GB)."""
     tensors = load_file(str(path))
     r, alpha = config["r"], config["lora_alpha"]
     scale = alpha / (r**0.5 if config.get("use_rslora") else r)
-    out = {}
     for key, a in tensors.items():
         if key.endswith(".lora_A.weight"):
             module = key.removeprefix(PEFT_PREFIX).removesuffix(".lora_A.weight")
             b = tensors[key.replace(".lora_A.", ".lora_B.")]
-            out[f"{module}.weight"] = scale * (b.double() @ a.double())
-    return out
+            yield f"{module}.weight", scale * (b.double() @ a.double())
 
 
 def deltas_from_wan(path: Path) -> dict[str, torch.Tensor]:
     """{ONNX initializer name: alpha / r * up @ down} from a Wan-named file (alpha = r when absent)."""
+    return dict(iter_deltas_wan(path))
+
+
+def iter_deltas_wan(path: Path):
+    """`deltas_from_wan`, one (name, delta) at a time."""
     tensors = load_file(str(path))
-    out = {}
     for key, down in tensors.items():
         if key.endswith(".lora_down.weight"):
             module = key.removeprefix(WAN_PREFIX).removesuffix(".lora_down.weight")
@@ -203,5 +212,53 @@ def deltas_from_wan(path: Path) -> dict[str, torch.Tensor]:
             rank = down.shape[0]
             alpha_key = key.replace(".lora_down.weight", ".alpha")
             alpha = float(tensors[alpha_key]) if alpha_key in tensors else float(rank)
-            out[f"{wan_to_diffusers(module)}.weight"] = alpha / rank * (up.double() @ down.double())
-    return out
+            yield f"{wan_to_diffusers(module)}.weight", alpha / rank * (up.double() @ down.double())
+
+
+def merge_into_transformer(transformer: torch.nn.Module, path: Path, scale: float = 1.0) -> dict:
+    """Add `scale` x a LoRA's deltas (either naming) to `transformer`'s weights in place, in float64
+    then rounded once to each weight's own type; returns refiner.json's `lora_merged` entry.
+
+    This is the export-time merge (`python -m c4g.wan.export --lora`): done on the f32 weights
+    before `--fp16` rounds them, it rounds each merged weight once, where merging into an f16
+    package at load rounds the base weights and then the sum. A PEFT file takes r and lora_alpha
+    from the `adapter_config.json` beside it; a Wan-named file its own `.alpha` (r when absent).
+    Every delta must land on a parameter of the same shape, or this fails naming it."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "adapter_model.safetensors"
+    with safe_open(str(path), "pt") as f:
+        keys, header = list(f.keys()), f.metadata() or {}
+    if any(k.endswith(".lora_A.weight") for k in keys):
+        config_path = path.parent / "adapter_config.json"
+        if config_path.exists():
+            config = json.loads(config_path.read_text())
+        elif "lora_adapter_metadata" in header:  # diffusers' save_lora_weights: keys `transformer.r`, ...
+            config = {k.removeprefix("transformer."): v for k, v in json.loads(header["lora_adapter_metadata"]).items()}
+        else:
+            raise ValueError(f"{path}: a PEFT LoRA needs its adapter_config.json beside it, or the config in its header (r, lora_alpha)")
+        deltas = iter_deltas_peft(path, config)
+        naming = "peft"
+    elif any(k.endswith(".lora_down.weight") for k in keys):
+        deltas = iter_deltas_wan(path)
+        naming = "wan"
+    else:
+        raise ValueError(f"{path}: no LoRA factors (`.lora_A.weight` / `.lora_down.weight` keys)")
+    params = dict(transformer.named_parameters())
+    modules = 0
+    for name, delta in deltas:
+        modules += 1
+        p = params.get(name)
+        if p is None:
+            raise ValueError(f"{path}: LoRA module {name.removesuffix('.weight')!r} is not a weight of the transformer")
+        if tuple(p.shape) != tuple(delta.shape):
+            raise ValueError(f"{path}: LoRA module {name.removesuffix('.weight')!r} gives {list(delta.shape)} for a weight of {list(p.shape)}")
+        with torch.no_grad():
+            p.copy_((p.double() + scale * delta).to(p.dtype))
+    return {
+        "file": path.name,
+        "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+        "naming": naming,
+        "scale": scale,
+        "modules": modules,
+    }
