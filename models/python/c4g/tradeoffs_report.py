@@ -54,6 +54,15 @@ PRESET_RULES = (
 # shared machine is larger); a tie goes to the one closest to exact.
 TIME_TIE = 0.05
 STREAM_TARGET_SETS_PER_S = 1000.0
+# What the service serves for each preset (`server/src/quality.rs`: keyframes every 1 and 1.5 context
+# spacings, `fast` also pruning at 0.5 px; the wire precision is the request's own `precision`), as
+# the sweep names those settings on the test clips (context frames 0.2 s apart) with the f16 wire.
+# The page says how each does on this run against its rule, so a remade page shows when a new model or
+# machine moves the rule's pick away from what is served; changing what is served is quality.rs's.
+SERVED_PRESETS = {
+    "balanced": "every 0.2 s",
+    "fast": "every 0.3 s + prune 0.5 px + f16 wire",
+}
 
 
 def frames_to_amortise(row: dict, target: float = STREAM_TARGET_SETS_PER_S) -> float | None:
@@ -109,6 +118,26 @@ def loss_db(row: dict, base: dict) -> float:
 
 def in_pool(row: dict, modes=PRESET_KEYFRAME_MODES) -> bool:
     return all(row[k] == v for k, v in PRESET_POOL.items()) and row["keyframes"]["mode"] in modes
+
+
+def served_verdicts(rows: list[dict], presets: dict[str, dict], served=SERVED_PRESETS, rules=PRESET_RULES, tie: float = TIME_TIE) -> dict[str, dict]:
+    """{preset: {"row", "within_bounds", "within_tie"}} for each served setting the sweep measured: whether it
+    meets its rule's loss and fidelity bounds on this run, and whether its time is within `tie` of the
+    rule's pick's (or faster)."""
+    by_name = {r["name"]: r for r in rows}
+    base = baseline(rows)
+    out = {}
+    for rule in rules:
+        r = by_name.get(served.get(rule.name, ""))
+        pick = presets.get(rule.name)
+        if r is None or rule.max_loss_db is None:
+            continue
+        out[rule.name] = {
+            "row": r,
+            "within_bounds": loss_db(r, base) <= rule.max_loss_db and vs_exact(r) >= rule.min_vs_exact_db,
+            "within_tie": pick is not None and r["ms_per_frame"] <= pick["ms_per_frame"] * (1 + tie),
+        }
+    return out
 
 
 def choose_presets(rows: list[dict], rules=PRESET_RULES, tie: float = TIME_TIE, modes=PRESET_KEYFRAME_MODES) -> dict[str, dict]:
@@ -517,6 +546,26 @@ def document(results: dict, png_name: str) -> str:
         if rule.max_loss_db is not None and alternative is not presets.get(rule.name):
             add(preset_row(f"{rule.name}, adaptive only", rule, alternative))
     add("")
+    verdicts = served_verdicts(rows, presets)
+    if verdicts:
+        parts = []
+        for name, v in verdicts.items():
+            r, pick = v["row"], presets.get(name)
+            same = pick is not None and pick["name"] == r["name"]
+            if same:
+                verdict = "the rule's pick on this run"
+            elif v["within_bounds"] and v["within_tie"]:
+                verdict = (f"not the rule's pick on this run ({pick['name']}) but within its bounds and its time tie "
+                           f"({r['ms_per_frame']:.2f} against {pick['ms_per_frame']:.2f} ms a frame, {_db(r['vs_exact']['psnr'])} dB against "
+                           f"{_db(pick['vs_exact']['psnr'])} dB from exact), so it stays")
+            else:
+                verdict = (f"**{'outside its rule' if not v['within_bounds'] else 'slower than the time tie'} on this run** "
+                           f"({r['ms_per_frame']:.2f} ms a frame, loss {loss_db(r, base):+.2f} dB, {_db(r['vs_exact']['psnr'])} dB from exact; "
+                           f"the rule picks {pick['name'] if pick else 'nothing'}): `server/src/quality.rs` should follow")
+            parts.append(f"`{name}` serves {r['name']}: {verdict}")
+        add("**What the service serves** (`server/src/quality.rs`, set from an earlier run; the wire precision is the "
+            "request's `precision`): " + "; ".join(parts) + ".")
+        add("")
     add("**Seconds are this clip's.** A spacing in seconds (`every_s`) means something different on every clip: here "
         "the context frames are 0.2 s apart, so every 0.2 s puts a keyframe on each context frame, where the model's "
         "motion turns its corners (`engine/src/keyframes.rs`), and 0.3 s is 1.5 context spacings. On a clip whose "

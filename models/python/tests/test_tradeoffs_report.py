@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from c4g.tradeoffs_report import Rule, choose_presets, document, pareto, vs_exact, gt_psnr, main
+from c4g.tradeoffs_report import Rule, choose_presets, document, pareto, served_verdicts, vs_exact, gt_psnr, main
 
 
 def row(name, ms, gt, exact, *, mode="adaptive", resolution=64, context=4, precision="f32", knob="keyframes"):
@@ -95,6 +95,21 @@ def test_presets_are_the_fastest_candidates_within_their_bounds():
 def test_a_near_tie_in_time_goes_to_the_setting_closer_to_exact():
     assert choose_presets(rows())["fast"]["name"] == "coarse twin"
     assert choose_presets(rows(), tie=0.01)["fast"]["name"] == "coarse"
+
+
+def test_served_presets_are_checked_against_their_rules():
+    presets = choose_presets(rows())
+    verdicts = served_verdicts(rows(), presets, served={"balanced": "fine", "fast": "far"})
+    # fine is balanced's pick; far is fast enough but 35 dB from exact, outside fast's 40 dB.
+    assert verdicts["balanced"]["within_bounds"] and verdicts["balanced"]["within_tie"]
+    assert not verdicts["fast"]["within_bounds"] and verdicts["fast"]["within_tie"]
+    # coarse meets fast's bounds and is within the tie of its pick (coarse twin); medium is slower.
+    coarse = served_verdicts(rows(), presets, served={"fast": "coarse"})["fast"]
+    assert coarse["within_bounds"] and coarse["within_tie"]
+    medium = served_verdicts(rows(), presets, served={"fast": "medium"})["fast"]
+    assert medium["within_bounds"] and not medium["within_tie"]
+    # A served setting the sweep did not measure is left out.
+    assert served_verdicts(rows(), presets, served={"fast": "unmeasured"}) == {}
 
 
 def test_a_fidelity_bound_excludes_rows_far_from_exact():
