@@ -75,6 +75,13 @@ pub(crate) fn create_session_with_lora(
             }
         }
     })?;
+    if count == 0 {
+        // Scale 0: every module was placed and checked, nothing changed; the package as it is.
+        let session = session_builder(model, options)?
+            .commit_from_file(model)
+            .map_err(RuntimeError::ort(loading(model)))?;
+        return Ok((session, 0));
+    }
     let folder = match &scratch {
         Some(dir) => {
             for location in locations {
