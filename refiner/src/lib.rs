@@ -20,7 +20,7 @@
 //! | [`onnx`] | reading initializers out of an `.onnx` file |
 //! | `noise` | the seeded Gaussian generator |
 //! | `pipeline` | load, refine, and its building blocks (VAE encode / decode, velocity) |
-//! | `weights_session` | the transformer's session with the LoRA-merged weights swapped in |
+//! | `weights_session` | the transformer's session with the LoRA merged in: a scratch copy of its external data |
 //! | `error` | the crate's error type |
 //! | [`worker`] | the `c4g-refiner` worker: jobs from `c4g-server` over gRPC, progress, results |
 //!
