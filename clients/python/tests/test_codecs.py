@@ -15,12 +15,16 @@ from c4g_client import _c4gs, _c4gv, _errors, _http, _png
 from c4g_client._sse import SseDecoder, SseEvent
 
 
-def c4gs_bytes(frames, precision="f32"):
+def c4gs_bytes(frames, precision="f32", feature_width=None):
     """A C4GS payload written from the spec (renderer/src/formats/c4gs.rs), independently of
-    the reader under test."""
+    the reader under test: version 1, or with ``feature_width`` version 2, whose frames hold a
+    sixth column (the features) after the five."""
     code, dtype = {"f32": (0, "<f4"), "f16": (1, "<f2")}[precision]
     n = len(frames[0][1][3]) if frames else 0
-    out = b"C4GS" + struct.pack("<HBBII", 1, code, 0, len(frames), n)
+    version = 1 if feature_width is None else 2
+    out = b"C4GS" + struct.pack("<HBBII", version, code, 0, len(frames), n)
+    if feature_width is not None:
+        out += struct.pack("<I", feature_width)
     for time, columns in frames:
         out += struct.pack("<d", time)
         for column in columns:
@@ -67,8 +71,8 @@ def test_c4gs_refuses_short_payloads_other_versions_and_magic():
         _c4gs.decode(payload[:-1])
     with pytest.raises(c4g.FormatError, match="16-byte header"):
         _c4gs.decode(payload[:10])
-    with pytest.raises(c4g.FormatError, match="version 2"):
-        _c4gs.decode(payload[:4] + b"\x02" + payload[5:])
+    with pytest.raises(c4g.FormatError, match="version 3; this reader reads versions 1 and 2"):
+        _c4gs.decode(payload[:4] + b"\x03" + payload[5:])
     with pytest.raises(c4g.FormatError, match="not a C4GS"):
         _c4gs.decode(b"XXXX" + payload[4:])
     # The reserved byte is ignored, as the spec says.
@@ -77,6 +81,151 @@ def test_c4gs_refuses_short_payloads_other_versions_and_magic():
 
 def test_c4gs_of_no_frames_is_an_empty_list():
     assert _c4gs.decode(b"C4GS" + struct.pack("<HBBII", 1, 0, 0, 0, 512)) == []
+
+
+def with_features(columns, features):
+    """One frame's columns followed by its feature rows: version 2's layout."""
+    return columns + [features]
+
+
+FEATURES = [[0.5, -1.25, 3.0], [1e-3, 0.0, -7.5]]
+
+
+def test_c4gs_version_1_sets_have_no_features():
+    (s,) = _c4gs.decode(c4gs_bytes([(0.5, one_gaussian())]))
+    assert s.features is None and s.feature_width == 0 and "features" not in s.arrays()
+
+
+@pytest.mark.parametrize("precision", ["f32", "f16"])
+def test_c4gs_version_2_reads_the_features_after_the_colours(precision):
+    two = [np.concatenate([np.ravel(a), np.ravel(b)]) for a, b in zip(one_gaussian(), one_gaussian(4.0))]
+    frames = [(0.25, with_features(two, FEATURES)), (0.5, with_features(two, FEATURES[::-1]))]
+    payload = c4gs_bytes(frames, precision, feature_width=3)
+    first, second = _c4gs.decode(payload)
+    wire = np.float32 if precision == "f32" else np.float16
+    np.testing.assert_array_equal(first.features, np.float32(FEATURES).astype(wire).astype(np.float32))
+    np.testing.assert_array_equal(second.features, first.features[::-1])
+    assert first.features.dtype == np.float32 and first.feature_width == 3
+    # The five columns read as in version 1.
+    np.testing.assert_array_equal(first.means, np.float32([[1.0, -2.0, 3.5], [4.0, -2.0, 3.5]]))
+    np.testing.assert_array_equal(first.colors[1], np.float32([0.25, 0.5, 1.0]).astype(wire))
+    assert (first.time, second.time) == (0.25, 0.5)
+
+
+def test_c4gs_version_2_refuses_short_and_hostile_payloads():
+    payload = c4gs_bytes([(0.5, with_features(one_gaussian(), [[1.0, 2.0]]))], feature_width=2)
+    assert _c4gs.decode(payload)[0].features.tolist() == [[1.0, 2.0]]
+    with pytest.raises(c4g.FormatError, match="with 2 feature channels needs"):
+        _c4gs.decode(payload[:-1])
+    with pytest.raises(c4g.FormatError, match="needs"):
+        _c4gs.decode(payload + b"\x00")
+    with pytest.raises(c4g.FormatError, match="feature width after the header"):
+        _c4gs.decode(payload[:18])
+    with pytest.raises(c4g.FormatError, match="at least 1; got 0"):
+        _c4gs.decode(payload[:16] + struct.pack("<I", 0) + payload[20:])
+    # Headers that claim terabytes are refused by the payload's length, before any allocation.
+    huge_width = payload[:16] + struct.pack("<I", 2**32 - 1) + payload[20:]
+    with pytest.raises(c4g.FormatError, match="needs"):
+        _c4gs.decode(huge_width)
+    huge_count = b"C4GS" + struct.pack("<HBBIII", 2, 0, 0, 2**32 - 1, 2**32 - 1, 2**32 - 1)
+    with pytest.raises(c4g.FormatError, match="needs"):
+        _c4gs.decode(huge_count)
+    # A version 1 reading of a version 2 payload is what the version field prevents: the width
+    # field shifts every column, so the same bytes as version 1 do not add up.
+    with pytest.raises(c4g.FormatError, match="needs"):
+        _c4gs.decode(payload[:4] + b"\x01" + payload[5:])
+
+
+def test_packed_feature_columns_are_checked_like_the_others():
+    columns = [np.float32(c).tobytes() for c in one_gaussian()]
+    s = _c4gs.unpack_columns(0.1, 1, "f32", columns, np.float32([[1, 2, 3, 4]]).tobytes(), 4)
+    assert s.features.shape == (1, 4)
+    with pytest.raises(c4g.FormatError, match="width 4 need 16 bytes; got 12"):
+        _c4gs.unpack_columns(0.1, 1, "f32", columns, np.float32([1, 2, 3]).tobytes(), 4)
+    with pytest.raises(c4g.FormatError, match="feature width of 0"):
+        _c4gs.unpack_columns(0.1, 1, "f32", columns, b"\x00" * 4, 0)
+    # gRPC's message without features: width 0 and empty bytes.
+    assert _c4gs.unpack_columns(0.1, 1, "f32", columns, b"", 0).features is None
+
+
+def feature_set(n=4, width=3, time=0.0):
+    rng = np.random.default_rng(n)
+    return c4g.GaussianSet(
+        time,
+        rng.normal(size=(n, 3)).astype(np.float32),
+        np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        np.full((n, 3), 0.1, np.float32),
+        np.full(n, 0.5, np.float32),
+        np.full((n, 3), 0.25, np.float32),
+        np.arange(n * width, dtype=np.float32).reshape(n, width),
+    )
+
+
+def test_a_sets_features_travel_with_it_and_are_shape_checked():
+    s = feature_set()
+    assert s.feature_width == 3 and "features of 3" in repr(s)
+    picked = s.take(np.array([True, False, True, False]))
+    np.testing.assert_array_equal(picked.features, s.features[[0, 2]])
+    np.testing.assert_array_equal(s.take(slice(1, 3)).features, s.features[1:3])
+    np.testing.assert_array_equal(s.arrays()["features"], s.features)
+    stacked = c4g.stack([s, feature_set(time=0.5)])
+    assert stacked["features"].shape == (2, 4, 3)
+    with pytest.raises(ValueError, match="1 of 2 sets have features"):
+        c4g.stack([s, _without_features(s)])
+    with pytest.raises(ValueError, match=r"features has shape \(3, 3\); expected \(4, F\)"):
+        c4g.GaussianSet(s.time, s.means, s.quats, s.scales, s.opacities, s.colors, s.features[:3])
+    with pytest.raises(ValueError, match="features has shape"):
+        c4g.GaussianSet(s.time, s.means, s.quats, s.scales, s.opacities, s.colors, s.features.ravel())
+
+
+def _without_features(s):
+    return c4g.GaussianSet(s.time, s.means, s.quats, s.scales, s.opacities, s.colors)
+
+
+def test_json_frames_with_features_read_as_rows():
+    frame = {"t": 0.5, "count": 1, "means": [[1, 2, 3]], "scales": [[0.1, 0.1, 0.1]],
+             "rotations": [[1, 0, 0, 0]], "opacities": [0.5], "colors": [[0.2, 0.3, 0.4]],
+             "features": [[0.1, -0.2]]}  # fmt: skip
+    (s,) = c4g._sets.from_json({"frames": [frame]})
+    np.testing.assert_array_equal(s.features, np.float32([[0.1, -0.2]]))
+    empty = {**frame, "count": 0, "means": [], "scales": [], "rotations": [], "opacities": [],
+             "colors": [], "features": []}  # fmt: skip
+    (none,) = c4g._sets.from_json({"frames": [empty]})
+    assert len(none) == 0 and none.features.shape[0] == 0
+
+
+def test_a_segments_masks_decode_their_runs_and_refuse_runs_that_do_not_cover_the_image():
+    body = {"width": 4, "height": 2, "t": 0.2, "threshold": 0.8, "feature": [1.0, 0.0],
+            "gaussians": [3, 17], "masks": [{"t": 0.0, "area": 3, "counts": [0, 2, 5, 1]}]}  # fmt: skip
+    segment = c4g.Segment.from_json(body)
+    (mask,) = segment.masks
+    assert mask.array.tolist() == [[True, True, False, False], [False, False, False, True]]
+    assert mask.array.sum() == mask.area and segment.gaussians.tolist() == [3, 17]
+    assert segment.feature.dtype == np.float32 and segment.t == 0.2
+    short = {**body, "masks": [{"t": 0.0, "area": 3, "counts": [0, 2, 5]}]}
+    with pytest.raises(c4g.FormatError, match="sum to the 4x2 pixels; got 7"):
+        c4g.Segment.from_json(short)
+    with pytest.raises(c4g.FormatError, match="not a segment"):
+        c4g.Segment.from_json({"width": 4})
+
+
+def test_a_features_render_is_read_by_its_channels_header():
+    from c4g_client import _endpoints
+
+    call = _endpoints.render("clip", 0.1, format="features")
+    assert call.json["format"] == "features"
+    values = np.arange(2 * 3 * 5, dtype="<f4")
+    headers = {"x-c4g-width": "3", "x-c4g-height": "2", "x-c4g-channels": "5", "x-c4g-time": "0.1"}
+    image = call.parse(httpx.Response(200, content=values.tobytes(), headers=headers))
+    assert isinstance(image, c4g.FeatureImage) and image.array.shape == (2, 3, 5) and image.channels == 5
+    np.testing.assert_array_equal(image.array[1, 2], values[25:30])
+    assert image.time == 0.1 and image.to_uint8().shape == (2, 3, 3)
+    with pytest.raises(c4g.FormatError, match="X-C4G-Channels"):
+        call.parse(httpx.Response(200, content=values.tobytes(), headers={**headers, "x-c4g-channels": ""}))
+    with pytest.raises(c4g.FormatError, match="is 120 bytes; got 116"):
+        call.parse(httpx.Response(200, content=values.tobytes()[:-4], headers=headers))
+    with pytest.raises(ValueError, match="unknown render format"):
+        _endpoints.render("clip", 0.1, format="feature")
 
 
 def leb128(u: int) -> bytes:

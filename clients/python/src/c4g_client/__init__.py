@@ -12,22 +12,26 @@ Table of contents (each module is one idea; the names below are the public surfa
 ==================== ==========================================================================
 module               what
 ==================== ==========================================================================
-``_client``          :class:`Client`: every REST operation, blocking; gRPC streaming
+``_client``          :class:`Client`: every REST operation, blocking; gRPC streaming and decodes
 ``_async_client``    :class:`AsyncClient`: the same, for asyncio
 ``_endpoints``       the REST contract: each operation's request and how its answer is read
 ``_http``            base URL, API key, the request type both clients send, error answers
 ``_errors``          :class:`C4GError` and one class per server error ``kind``
-``_sets``            :class:`GaussianSet`: NumPy arrays in gsplat's conventions; ``to_torch()``
-``_c4gs``            the ``C4GS`` binary sets (f32/f16) the decodes are fetched as
+``_sets``            :class:`GaussianSet`: NumPy arrays in gsplat's conventions (and the lifted
+                     ``features``, when asked for); ``to_torch()``
+``_c4gs``            the ``C4GS`` binary sets (f32/f16, versions 1 and 2) the decodes are fetched as
 ``_c4gv``            :class:`C4GVDecoder`: the compact 4D stream, decoded incrementally
 ``_stream``          chunked answers as iterators: the C4GV stream, a job's events
 ``_sse``             server-sent events, chunk by chunk
-``_grpc``            ``StreamGaussians`` over gRPC (extra ``grpc``); ``_proto`` its messages
+``_grpc``            ``StreamGaussians`` and ``Decode`` over gRPC (extra ``grpc``); ``_proto`` its
+                     messages
 ``_upload``          upload bodies: files, folders, bytes, NumPy frames, with progress
-``_records``         :class:`Clip`, :class:`Model`, :class:`Job`, :class:`Export`
+``_records``         :class:`Clip`, :class:`Model`, :class:`Job`, :class:`Export`, :class:`Segment`
+                     (a :class:`Mask` a time)
 ``_camera``          :class:`Camera`, :class:`Intrinsics`, presets :class:`Orbit` ...
 ``_approx``          :data:`Quality`, :class:`Keyframes`, :class:`Prune`
-``_media``           :class:`Image`, :class:`ScalarImage`, :class:`Video`, notebook display
+``_media``           :class:`Image`, :class:`ScalarImage`, :class:`FeatureImage`, :class:`Video`,
+                     notebook display
 ``_png``             PNG in and out with NumPy alone
 ``_gsplat``          :func:`render_with_gsplat`: the same set through gsplat, when installed
 ==================== ==========================================================================
@@ -65,8 +69,8 @@ from ._errors import (
     UnsupportedMedia,
 )
 from ._gsplat import GsplatRender, GsplatUnavailable, gsplat_available, render_with_gsplat
-from ._media import Image, ScalarImage, Video
-from ._records import Clip, ClipSource, Export, Job, JobProgress, Model
+from ._media import FeatureImage, Image, ScalarImage, Video
+from ._records import Clip, ClipSource, Export, Job, JobProgress, Mask, Model, Segment
 from ._sets import GaussianSet, TorchGaussianSet, stack
 from ._stream import AsyncSetStream, SetStream
 
@@ -87,6 +91,7 @@ __all__ = [
     "Dolly",
     "Draining",
     "Export",
+    "FeatureImage",
     "FormatError",
     "GaussianSet",
     "GsplatRender",
@@ -100,6 +105,7 @@ __all__ = [
     "Job",
     "JobProgress",
     "Keyframes",
+    "Mask",
     "Model",
     "NotFound",
     "NotReady",
@@ -109,6 +115,7 @@ __all__ = [
     "Quality",
     "RetryableError",
     "ScalarImage",
+    "Segment",
     "SetStream",
     "Spiral",
     "StreamInterrupted",

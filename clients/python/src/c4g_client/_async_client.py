@@ -18,10 +18,11 @@ from . import _grpc, _upload
 from ._approx import KeyframesLike, PruneLike
 from ._camera import CameraLike, TrajectoryLike
 from ._client import Times, default_key, default_url, times_of
+from ._endpoints import ClickLike
 from ._errors import StreamInterrupted, TransportError
 from ._http import DEFAULT_TIMEOUT, Call, auth_headers, error_from
-from ._media import Image, ScalarImage, Video
-from ._records import Clip, Export, Job, Model, PathLike
+from ._media import FeatureImage, Image, ScalarImage, Video
+from ._records import Clip, Export, Job, Model, PathLike, Segment
 from ._sets import GaussianSet
 from ._stream import AsyncSetStream, JobCallback, ajob_events
 from ._upload import Progress, UploadSource
@@ -131,6 +132,7 @@ class AsyncClient:
         quality: Optional[str] = ...,
         keyframes: Optional[KeyframesLike] = ...,
         prune: Optional[PruneLike] = ...,
+        features: bool = ...,
     ) -> GaussianSet: ...
 
     @overload
@@ -143,6 +145,7 @@ class AsyncClient:
         quality: Optional[str] = ...,
         keyframes: Optional[KeyframesLike] = ...,
         prune: Optional[PruneLike] = ...,
+        features: bool = ...,
     ) -> List[GaussianSet]: ...
 
     async def decode(
@@ -154,10 +157,17 @@ class AsyncClient:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        features: bool = False,
     ) -> Union[GaussianSet, List[GaussianSet]]:
         sets = await self._run(
             ep.decode(
-                clip_id, times_of(t), precision=precision, quality=quality, keyframes=keyframes, prune=prune
+                clip_id,
+                times_of(t),
+                precision=precision,
+                quality=quality,
+                keyframes=keyframes,
+                prune=prune,
+                features=features,
             )
         )
         return sets[0] if isinstance(t, numbers.Real) else sets
@@ -172,6 +182,7 @@ class AsyncClient:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        features: bool = False,
     ) -> bytes:
         return await self._run(
             ep.gaussians(
@@ -182,6 +193,7 @@ class AsyncClient:
                 quality=quality,
                 keyframes=keyframes,
                 prune=prune,
+                features=features,
             )
         )
 
@@ -277,6 +289,55 @@ class AsyncClient:
             self.base_url, self._api_key, request, compact is not None
         ).start()
 
+    @overload
+    async def grpc_decode(
+        self,
+        clip_id: str,
+        t: float,
+        *,
+        precision: str = ...,
+        quality: Optional[str] = ...,
+        keyframes: Optional[KeyframesLike] = ...,
+        prune: Optional[PruneLike] = ...,
+        features: bool = ...,
+    ) -> GaussianSet: ...
+
+    @overload
+    async def grpc_decode(
+        self,
+        clip_id: str,
+        t: Sequence[float],
+        *,
+        precision: str = ...,
+        quality: Optional[str] = ...,
+        keyframes: Optional[KeyframesLike] = ...,
+        prune: Optional[PruneLike] = ...,
+        features: bool = ...,
+    ) -> List[GaussianSet]: ...
+
+    async def grpc_decode(
+        self,
+        clip_id: str,
+        t: Times,
+        *,
+        precision: str = "f32",
+        quality: Optional[str] = None,
+        keyframes: Optional[KeyframesLike] = None,
+        prune: Optional[PruneLike] = None,
+        features: bool = False,
+    ) -> Union[GaussianSet, List[GaussianSet]]:
+        request = _grpc.decode_request(
+            clip_id,
+            times_of(t),
+            precision=precision,
+            quality=quality,
+            keyframes=keyframes,
+            prune=prune,
+            features=features,
+        )
+        sets = await _grpc.adecode(self.base_url, self._api_key, request)
+        return sets[0] if isinstance(t, numbers.Real) else sets
+
     async def render(
         self,
         clip_id: str,
@@ -289,7 +350,7 @@ class AsyncClient:
         format: str = "png",
         quality: Optional[str] = None,
         prune: Optional[PruneLike] = None,
-    ) -> Union[Image, ScalarImage]:
+    ) -> Union[Image, ScalarImage, FeatureImage]:
         return await self._run(
             ep.render(
                 clip_id,
@@ -344,6 +405,33 @@ class AsyncClient:
         if path is not None:
             video.save(path)
         return video
+
+    async def segment(
+        self,
+        clip_id: str,
+        *,
+        click: Optional[ClickLike] = None,
+        feature: Any = None,
+        t: Optional[float] = None,
+        threshold: Optional[float] = None,
+        times: Optional[Sequence[float]] = None,
+        camera: Optional[CameraLike] = None,
+        width: Optional[int] = None,
+        height: Optional[int] = None,
+    ) -> Segment:
+        return await self._run(
+            ep.segment(
+                clip_id,
+                click=click,
+                feature=feature,
+                t=t,
+                threshold=threshold,
+                times=times,
+                camera=camera,
+                width=width,
+                height=height,
+            )
+        )
 
     async def refine(
         self,

@@ -18,10 +18,11 @@ from . import _endpoints as ep
 from . import _grpc, _upload
 from ._approx import KeyframesLike, PruneLike
 from ._camera import CameraLike, TrajectoryLike
+from ._endpoints import ClickLike
 from ._errors import StreamInterrupted, TransportError
 from ._http import DEFAULT_TIMEOUT, Call, auth_headers, error_from, normalise_base_url
-from ._media import Image, ScalarImage, Video
-from ._records import Clip, Export, Job, Model, PathLike
+from ._media import FeatureImage, Image, ScalarImage, Video
+from ._records import Clip, Export, Job, Model, PathLike, Segment
 from ._sets import GaussianSet
 from ._stream import JobCallback, SetStream, job_events
 from ._upload import Progress, UploadSource
@@ -176,6 +177,7 @@ class Client:
         quality: Optional[str] = ...,
         keyframes: Optional[KeyframesLike] = ...,
         prune: Optional[PruneLike] = ...,
+        features: bool = ...,
     ) -> GaussianSet: ...
 
     @overload
@@ -188,6 +190,7 @@ class Client:
         quality: Optional[str] = ...,
         keyframes: Optional[KeyframesLike] = ...,
         prune: Optional[PruneLike] = ...,
+        features: bool = ...,
     ) -> List[GaussianSet]: ...
 
     def decode(
@@ -199,14 +202,23 @@ class Client:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        features: bool = False,
     ) -> Union[GaussianSet, List[GaussianSet]]:
         """The Gaussians at one time (a :class:`GaussianSet`) or several (a list, in the order
         given), as NumPy arrays in gsplat's conventions. ``precision="f16"`` halves the bytes
         on the wire (values rounded to the nearest half); ``quality``, ``keyframes`` and
-        ``prune`` trade accuracy for speed (docs/api.md)."""
+        ``prune`` trade accuracy for speed (docs/api.md). ``features=True`` adds each
+        Gaussian's lifted feature vector (``.features``, ``(N, F)``), on a package with a
+        feature decoder (:class:`~c4g_client.Unsupported` otherwise)."""
         sets = self._run(
             ep.decode(
-                clip_id, times_of(t), precision=precision, quality=quality, keyframes=keyframes, prune=prune
+                clip_id,
+                times_of(t),
+                precision=precision,
+                quality=quality,
+                keyframes=keyframes,
+                prune=prune,
+                features=features,
             )
         )
         return sets[0] if isinstance(t, numbers.Real) else sets
@@ -221,9 +233,11 @@ class Client:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        features: bool = False,
     ) -> bytes:
         """The gaussians endpoint's bytes as the server sent them (``json``, ``binary``,
-        ``ply``, ``splat``)."""
+        ``ply``, ``splat``); ``features`` as for :meth:`decode` (``C4GS`` version 2, ``.ply``
+        ``feat_*`` properties; ``splat`` has no room for them)."""
         return self._run(
             ep.gaussians(
                 clip_id,
@@ -233,6 +247,7 @@ class Client:
                 quality=quality,
                 keyframes=keyframes,
                 prune=prune,
+                features=features,
             )
         )
 
@@ -334,6 +349,57 @@ class Client:
         )
         return _grpc.GrpcSetStream(self.base_url, self._api_key, request, compact is not None)
 
+    @overload
+    def grpc_decode(
+        self,
+        clip_id: str,
+        t: float,
+        *,
+        precision: str = ...,
+        quality: Optional[str] = ...,
+        keyframes: Optional[KeyframesLike] = ...,
+        prune: Optional[PruneLike] = ...,
+        features: bool = ...,
+    ) -> GaussianSet: ...
+
+    @overload
+    def grpc_decode(
+        self,
+        clip_id: str,
+        t: Sequence[float],
+        *,
+        precision: str = ...,
+        quality: Optional[str] = ...,
+        keyframes: Optional[KeyframesLike] = ...,
+        prune: Optional[PruneLike] = ...,
+        features: bool = ...,
+    ) -> List[GaussianSet]: ...
+
+    def grpc_decode(
+        self,
+        clip_id: str,
+        t: Times,
+        *,
+        precision: str = "f32",
+        quality: Optional[str] = None,
+        keyframes: Optional[KeyframesLike] = None,
+        prune: Optional[PruneLike] = None,
+        features: bool = False,
+    ) -> Union[GaussianSet, List[GaussianSet]]:
+        """:meth:`decode` over gRPC (``Decode``; the ``grpc`` extra): the same sets, with the
+        lifted features when ``features=True`` (``GaussianSet.features`` of the message)."""
+        request = _grpc.decode_request(
+            clip_id,
+            times_of(t),
+            precision=precision,
+            quality=quality,
+            keyframes=keyframes,
+            prune=prune,
+            features=features,
+        )
+        sets = _grpc.decode(self.base_url, self._api_key, request)
+        return sets[0] if isinstance(t, numbers.Real) else sets
+
     # -- rendering --------------------------------------------------------------------------
 
     def render(
@@ -348,10 +414,14 @@ class Client:
         format: str = "png",
         quality: Optional[str] = None,
         prune: Optional[PruneLike] = None,
-    ) -> Union[Image, ScalarImage]:
+    ) -> Union[Image, ScalarImage, FeatureImage]:
         """One view at time ``t`` (default the span's start) from ``camera`` (default the first
         context camera): ``png`` gives an :class:`Image` (``.array`` is ``(H, W, 3)`` uint8),
-        ``depth`` or ``alpha`` a :class:`ScalarImage` of ``float32``."""
+        ``depth`` or ``alpha`` a :class:`ScalarImage` of ``float32``. On a package with a
+        feature decoder, ``features`` gives a :class:`FeatureImage` (``(H, W, F)`` ``float32``:
+        each pixel its Gaussians' features composited like colour, no background) and
+        ``features_pca`` an :class:`Image` (the features coloured by the clip's PCA basis,
+        which is the same at every time and from every camera)."""
         return self._run(
             ep.render(
                 clip_id,
@@ -408,6 +478,42 @@ class Client:
         if path is not None:
             video.save(path)
         return video
+
+    # -- segments ---------------------------------------------------------------------------
+
+    def segment(
+        self,
+        clip_id: str,
+        *,
+        click: Optional[ClickLike] = None,
+        feature: Any = None,
+        t: Optional[float] = None,
+        threshold: Optional[float] = None,
+        times: Optional[Sequence[float]] = None,
+        camera: Optional[CameraLike] = None,
+        width: Optional[int] = None,
+        height: Optional[int] = None,
+    ) -> Segment:
+        """The Gaussians whose lifted feature is like what pixel ``(x, y)`` shows at time ``t``
+        (``click=(t, x, y)``, in ``camera`` at ``width`` x ``height``) or like ``feature`` (F
+        numbers, compared at ``t``, default the first context time): every Gaussian whose
+        feature's cosine similarity reaches ``threshold`` (server default 0.8). The answer holds
+        them and a :class:`Mask` per time of ``times`` (default the context times; the
+        selection is made once, so the masks follow the same Gaussians wherever they move). A
+        package without a feature decoder raises :class:`~c4g_client.Unsupported`."""
+        return self._run(
+            ep.segment(
+                clip_id,
+                click=click,
+                feature=feature,
+                t=t,
+                threshold=threshold,
+                times=times,
+                camera=camera,
+                width=width,
+                height=height,
+            )
+        )
 
     # -- refinement -------------------------------------------------------------------------
 

@@ -20,14 +20,17 @@ from ._approx import KeyframesLike, PruneLike, approximation_json
 from ._camera import CameraLike, TrajectoryLike, camera_json, trajectory_json
 from ._errors import FormatError
 from ._http import Call, read_json
-from ._media import Image, ScalarImage, Video
-from ._records import Clip, Export, Job, Model, filename_from, fit_error_from, jobs_from
+from ._media import FeatureImage, Image, ScalarImage, Video
+from ._records import Clip, Export, Job, Model, Segment, filename_from, fit_error_from, jobs_from
 from ._sets import GaussianSet, from_json
 
 #: Formats of the gaussians endpoint (one set per request for ply and splat).
 SET_FORMATS = ("json", "binary", "ply", "splat")
 #: Formats of the export endpoint (a time range as one file).
 RANGE_FORMATS = ("ply_zip", "spz_zip", "splatv")
+#: Formats of a single view: RGB PNG, raw f32 depth and alpha, and the lifted features (raw
+#: f32 ``[H, W, F]``, or coloured by the clip's PCA basis as an RGB PNG).
+VIEW_FORMATS = ("png", "depth", "alpha", "features", "features_pca")
 
 
 def _drop_none(fields: Mapping[str, Any]) -> Dict[str, Any]:
@@ -88,12 +91,16 @@ def gaussians(
     quality: Optional[str] = None,
     keyframes: Optional[KeyframesLike] = None,
     prune: Optional[PruneLike] = None,
+    features: bool = False,
 ) -> Call[bytes]:
     """The gaussians endpoint's bytes in any of its formats (``json``, ``binary``, ``ply``,
-    ``splat``)."""
+    ``splat``); ``features`` adds each Gaussian's lifted feature vector (JSON ``features``,
+    ``C4GS`` version 2, ``.ply`` ``feat_*``; the server refuses it for ``splat``)."""
     body: Dict[str, Any] = {"times": [float(t) for t in times], "format": format}
     if precision is not None:
         body["precision"] = precision
+    if features:
+        body["features"] = True
     body.update(approximation_json(quality, keyframes, prune))
     return Call("POST", ["v1", "clips", clip_id, "gaussians"], lambda r: r.content, json=body)
 
@@ -106,8 +113,10 @@ def decode(
     quality: Optional[str] = None,
     keyframes: Optional[KeyframesLike] = None,
     prune: Optional[PruneLike] = None,
+    features: bool = False,
 ) -> Call[List[GaussianSet]]:
-    """Sets as arrays, fetched as ``C4GS`` (binary): ``f32`` exact, ``f16`` half the bytes."""
+    """Sets as arrays, fetched as ``C4GS`` (binary): ``f32`` exact, ``f16`` half the bytes;
+    with ``features``, version 2, whose sets carry their lifted features."""
     call = gaussians(
         clip_id,
         times,
@@ -116,6 +125,7 @@ def decode(
         quality=quality,
         keyframes=keyframes,
         prune=prune,
+        features=features,
     )
     return Call(call.method, call.path, lambda r: _c4gs.decode(r.content), json=call.json)
 
@@ -217,11 +227,12 @@ def render(
     format: str = "png",
     quality: Optional[str] = None,
     prune: Optional[PruneLike] = None,
-) -> Call[Union[Image, ScalarImage]]:
-    """One view: a PNG :class:`Image`, or raw ``f32`` ``depth`` / ``alpha`` as a
-    :class:`ScalarImage`."""
-    if format not in ("png", "depth", "alpha"):
-        raise ValueError(f"unknown render format {format!r}: png, depth or alpha")
+) -> Call[Union[Image, ScalarImage, FeatureImage]]:
+    """One view: a PNG :class:`Image` (``png``, ``features_pca``), raw ``f32`` ``depth`` /
+    ``alpha`` as a :class:`ScalarImage`, or raw ``f32`` ``features`` as a
+    :class:`FeatureImage`."""
+    if format not in VIEW_FORMATS:
+        raise ValueError(f"unknown render format {format!r}: one of {VIEW_FORMATS}")
     body = _drop_none(
         {
             "t": t,
@@ -234,11 +245,13 @@ def render(
     )
     body.update(approximation_json(quality, None, prune))
 
-    def parse(r: httpx.Response) -> Union[Image, ScalarImage]:
+    def parse(r: httpx.Response) -> Union[Image, ScalarImage, FeatureImage]:
         time = _header_float(r, "x-c4g-time")
-        if format == "png":
+        if format in ("png", "features_pca"):
             return Image(r.content, time)
         w, h = int(r.headers.get("x-c4g-width", 0)), int(r.headers.get("x-c4g-height", 0))
+        if format == "features":
+            return _feature_image(r, w, h, time)
         if len(r.content) != 4 * w * h:
             raise FormatError(f"a {w}x{h} {format} render is {4 * w * h} bytes; got {len(r.content)}")
         return ScalarImage(
@@ -246,6 +259,19 @@ def render(
         )
 
     return Call("POST", ["v1", "clips", clip_id, "render"], parse, json=body)
+
+
+def _feature_image(r: httpx.Response, w: int, h: int, time: Optional[float]) -> FeatureImage:
+    """A raw feature render: ``X-C4G-Channels`` floats a pixel, checked against the length."""
+    channels = r.headers.get("x-c4g-channels", "")
+    if not channels.isdigit() or int(channels) == 0:
+        raise FormatError(f"a features render says its channels in X-C4G-Channels; got {channels!r}")
+    f = int(channels)
+    if len(r.content) != 4 * w * h * f:
+        raise FormatError(
+            f"a {w}x{h} features render of {f} channels is {4 * w * h * f} bytes; got {len(r.content)}"
+        )
+    return FeatureImage(np.frombuffer(r.content, dtype="<f4").reshape(h, w, f).astype(np.float32), time)
 
 
 def render_video(
@@ -289,6 +315,52 @@ def render_video(
         ["v1", "clips", clip_id, "render"],
         lambda r: Video(r.content, r.headers.get("content-type", "video/mp4")),
         json=body,
+    )
+
+
+# -- segments ---------------------------------------------------------------------------------
+
+
+ClickLike = Union[Sequence[float], Mapping[str, float]]
+
+
+def segment(
+    clip_id: str,
+    *,
+    click: Optional[ClickLike] = None,
+    feature: Any = None,
+    t: Optional[float] = None,
+    threshold: Optional[float] = None,
+    times: Optional[Sequence[float]] = None,
+    camera: Optional[CameraLike] = None,
+    width: Optional[int] = None,
+    height: Optional[int] = None,
+) -> Call[Segment]:
+    """The Gaussians whose lifted feature is like a clicked pixel's (``click``: ``(t, x, y)``
+    or ``{"t": .., "x": .., "y": ..}``) or like ``feature`` (compared at ``t``), and their
+    masks at ``times``. A click and a feature together are sent as given: the server says
+    which to keep."""
+    if click is not None and not isinstance(click, Mapping):
+        at, x, y = click
+        click = {"t": float(at), "x": float(x), "y": float(y)}
+    body = _drop_none(
+        {
+            "click": dict(click) if click is not None else None,
+            "feature": (
+                [float(v) for v in np.asarray(feature, dtype=np.float32).reshape(-1)]
+                if feature is not None
+                else None
+            ),
+            "t": t,
+            "threshold": threshold,
+            "times": [float(x) for x in times] if times is not None else None,
+            "camera": camera_json(camera),
+            "width": width,
+            "height": height,
+        }
+    )
+    return Call(
+        "POST", ["v1", "clips", clip_id, "segment"], lambda r: Segment.from_json(read_json(r)), json=body
     )
 
 

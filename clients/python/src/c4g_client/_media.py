@@ -1,5 +1,6 @@
 """What renders come back as: an :class:`Image` (PNG and its pixels), a :class:`ScalarImage`
-(raw ``f32`` depth or alpha), a :class:`Video` (MP4). Each shows itself in a notebook.
+(raw ``f32`` depth or alpha), a :class:`FeatureImage` (raw ``f32`` lifted features), a
+:class:`Video` (MP4). Each shows itself in a notebook.
 
 Jupyter calls ``_repr_png_`` / ``_repr_html_`` when a cell's value is one of these, so
 ``client.render(clip, t=0.3)`` alone displays the view. The bytes the server sent are kept as
@@ -99,6 +100,53 @@ class ScalarImage:
     def __repr__(self) -> str:
         when = "" if self.time is None else f", t={self.time:g} s"
         return f"ScalarImage({self.kind}, {self.width}x{self.height}{when})"
+
+
+@dataclass(frozen=True, eq=False)
+class FeatureImage:
+    """A raw ``f32`` feature render (format ``features``): each pixel the blending-weighted sum
+    of its Gaussians' lifted feature vectors, ``(H, W, F)``, with no background (divide by the
+    alpha render for a pixel's mean feature).
+
+    It shows itself as its first three channels, each stretched over its 1st to 99th
+    percentile: a quick look only. The clip's own colouring, the same at every time and from
+    every camera, is the server's ``features_pca`` render.
+    """
+
+    array: np.ndarray
+    time: Optional[float] = None
+
+    @property
+    def width(self) -> int:
+        return int(self.array.shape[1])
+
+    @property
+    def height(self) -> int:
+        return int(self.array.shape[0])
+
+    @property
+    def channels(self) -> int:
+        """Floats per pixel (F, the server's ``X-C4G-Channels``)."""
+        return int(self.array.shape[2])
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        return self.array if dtype is None else self.array.astype(dtype)
+
+    def to_uint8(self) -> np.ndarray:
+        """``(H, W, 3)`` colours of the first three channels (fewer repeat the last)."""
+        a = np.nan_to_num(self.array.astype(np.float64))
+        picked = a[:, :, [min(k, a.shape[2] - 1) for k in range(3)]]
+        low = np.percentile(picked, 1, axis=(0, 1))
+        high = np.percentile(picked, 99, axis=(0, 1))
+        scaled = np.clip((picked - low) / np.maximum(high - low, 1e-12), 0, 1)
+        return (scaled * 255 + 0.5).astype(np.uint8)
+
+    def _repr_png_(self) -> bytes:
+        return _png.encode(self.to_uint8())
+
+    def __repr__(self) -> str:
+        when = "" if self.time is None else f", t={self.time:g} s"
+        return f"FeatureImage({self.width}x{self.height}x{self.channels}{when})"
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,6 @@
 """The server's records as typed values: a :class:`Clip` (an upload), the served
-:class:`Model`, a refinement :class:`Job`, and an :class:`Export` file.
+:class:`Model`, a refinement :class:`Job`, an :class:`Export` file, and a :class:`Segment` (the
+Gaussians a lifted feature selects, with a :class:`Mask` per time).
 
 Each keeps the JSON it came from in ``raw``, so a field a newer server adds is still there
 before this package names it.
@@ -11,6 +12,8 @@ import os
 import re
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Mapping, Optional, Tuple, Union
+
+import numpy as np
 
 from ._errors import FormatError
 
@@ -80,7 +83,9 @@ class Clip:
 @dataclass(frozen=True)
 class Model:
     """The served model package (``GET /v1/models``): its input size, Gaussians per set,
-    renderer and the server's limits."""
+    renderer and the server's limits. ``feature_lifting`` is the width F of its feature decoder
+    (the lifted features of ``decode(..., features=True)``, the feature renders and segments),
+    ``None`` for a package without one."""
 
     name: str
     version: str
@@ -90,6 +95,7 @@ class Model:
     renderer: str
     footprint: str
     limits: Dict[str, float]
+    feature_lifting: Optional[int]
     raw: Dict[str, Any] = field(repr=False, compare=False)
 
     @classmethod
@@ -104,6 +110,7 @@ class Model:
             renderer=body.get("renderer", ""),
             footprint=body.get("footprint", ""),
             limits=dict(body.get("limits", {})),
+            feature_lifting=int(body["feature_lifting"]) if body.get("feature_lifting") else None,
             raw=dict(body),
         )
 
@@ -200,6 +207,81 @@ class Export:
 
     def __repr__(self) -> str:
         return f"Export({self.format}, {len(self.data)} bytes, {self.sets} sets)"
+
+
+@dataclass(frozen=True, eq=False)
+class Mask:
+    """Where a segment's Gaussians are at time ``t``: their own render's alpha at 0.5 or more
+    (amodal: a selected Gaussian behind others still marks its pixels), ``area`` pixels set.
+    ``counts`` is the server's run-length code, alternating runs over the pixels in row-major
+    order starting with unset pixels; ``array`` is the ``(height, width)`` ``bool`` mask."""
+
+    t: float
+    area: int
+    counts: Tuple[int, ...]
+    width: int
+    height: int
+
+    @property
+    def array(self) -> np.ndarray:
+        runs = np.asarray(self.counts, dtype=np.int64)
+        values = np.arange(runs.size) % 2 == 1
+        return np.repeat(values, runs).reshape(self.height, self.width)
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        return self.array if dtype is None else self.array.astype(dtype)
+
+    def __repr__(self) -> str:
+        return f"Mask(t={self.t:g} s, {self.area} of {self.width}x{self.height} pixels)"
+
+
+@dataclass(frozen=True, eq=False)
+class Segment:
+    """The answer of ``POST /v1/clips/{id}/segment``: the Gaussians (indices, the same Gaussians
+    at every time) whose lifted feature at ``t`` has a cosine similarity of at least
+    ``threshold`` with ``feature`` (the clicked pixel's, or the one given), and one
+    :class:`Mask` of ``width`` × ``height`` per answered time, in order."""
+
+    width: int
+    height: int
+    t: float
+    threshold: float
+    feature: np.ndarray
+    gaussians: np.ndarray
+    masks: Tuple[Mask, ...]
+    raw: Dict[str, Any] = field(repr=False)
+
+    @classmethod
+    def from_json(cls, body: Mapping[str, Any]) -> Segment:
+        try:
+            width, height = int(body["width"]), int(body["height"])
+            masks = []
+            for m in body["masks"]:
+                counts = tuple(int(c) for c in m["counts"])
+                # Checked here, so a mask's array never allocates more than its image.
+                if any(c < 0 for c in counts) or sum(counts) != width * height:
+                    raise FormatError(f"a mask's runs sum to the {width}x{height} pixels; got {sum(counts)}")
+                masks.append(Mask(float(m["t"]), int(m["area"]), counts, width, height))
+            return cls(
+                width=width,
+                height=height,
+                t=float(body["t"]),
+                threshold=float(body["threshold"]),
+                feature=np.asarray(body["feature"], dtype=np.float32),
+                gaussians=np.asarray(body["gaussians"], dtype=np.int64).reshape(-1),
+                masks=tuple(masks),
+                raw=dict(body),
+            )
+        except (KeyError, TypeError, ValueError) as e:
+            if isinstance(e, FormatError):
+                raise
+            raise FormatError(f"not a segment ({e!r})") from None
+
+    def __repr__(self) -> str:
+        return (
+            f"Segment(t={self.t:g} s, {len(self.gaussians)} Gaussians, {len(self.masks)} masks "
+            f"of {self.width}x{self.height})"
+        )
 
 
 def filename_from(disposition: Optional[str]) -> Optional[str]:

@@ -13,15 +13,20 @@ scales     (N, 3)  **linear** standard deviations (activated: gsplat's trainers 
                    ``log`` scales and pass ``exp`` of them; the server sends the ``exp``)
 opacities  (N,)    activated, in [0, 1] (not logits)
 colors     (N, 3)  RGB, >= 0 and usually <= 1 (no spherical harmonics: degree 0 as RGB)
+features   (N, F)  each Gaussian's lifted feature vector (the 4D feature field), or
+                   ``None``: only a decode that asks for them (``features=True``) on a
+                   package with a feature decoder has them (F is its ``feature_lifting``)
 ========== ======= =====================================================================
 
 Arrays are ``float32``: the wire's ``f32`` exactly, or its ``f16`` widened (exact too).
+``features`` is optional and last, so a set is still made from the five columns alone; every
+operation that copies a set (``take``, ``to_torch``, :func:`stack`) carries it along.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Dict, List, Sequence
+from typing import TYPE_CHECKING, Any, Dict, List, Optional, Sequence
 
 import numpy as np
 
@@ -47,6 +52,7 @@ class GaussianSet:
     scales: np.ndarray
     opacities: np.ndarray
     colors: np.ndarray
+    features: Optional[np.ndarray] = None
 
     def __post_init__(self) -> None:
         n = self.means.shape[0]
@@ -60,6 +66,8 @@ class GaussianSet:
         for name, shape in shapes.items():
             if getattr(self, name).shape != shape:
                 raise ValueError(f"{name} has shape {getattr(self, name).shape}; expected {shape}")
+        if self.features is not None and (self.features.ndim != 2 or self.features.shape[0] != n):
+            raise ValueError(f"features has shape {self.features.shape}; expected ({n}, F)")
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -69,15 +77,24 @@ class GaussianSet:
         """Gaussians in the set (N)."""
         return len(self)
 
+    @property
+    def feature_width(self) -> int:
+        """Floats per feature vector (F); 0 when the set has no features (as gRPC says it)."""
+        return 0 if self.features is None else int(self.features.shape[1])
+
     def arrays(self) -> Dict[str, np.ndarray]:
-        """The five arrays by name, for ``np.savez(path, **s.arrays())`` or a trainer's dict."""
-        return {
+        """The arrays by name, for ``np.savez(path, **s.arrays())`` or a trainer's dict: the
+        five columns, and ``features`` when the set has them."""
+        out = {
             "means": self.means,
             "quats": self.quats,
             "scales": self.scales,
             "opacities": self.opacities,
             "colors": self.colors,
         }
+        if self.features is not None:
+            out["features"] = self.features
+        return out
 
     def take(self, index: Any) -> GaussianSet:
         """The Gaussians at ``index`` (a mask, indices or a slice), same time."""
@@ -88,6 +105,7 @@ class GaussianSet:
             self.scales[index],
             self.opacities[index],
             self.colors[index],
+            None if self.features is None else self.features[index],
         )
 
     def to_torch(self, device: Any = None, dtype: Any = None) -> TorchGaussianSet:
@@ -106,10 +124,12 @@ class GaussianSet:
             tensor(self.scales),
             tensor(self.opacities),
             tensor(self.colors),
+            None if self.features is None else tensor(self.features),
         )
 
     def __repr__(self) -> str:
-        return f"GaussianSet(t={self.time:g} s, {len(self)} Gaussians)"
+        features = f", features of {self.feature_width}" if self.features is not None else ""
+        return f"GaussianSet(t={self.time:g} s, {len(self)} Gaussians{features})"
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,6 +142,7 @@ class TorchGaussianSet:
     scales: torch.Tensor
     opacities: torch.Tensor
     colors: torch.Tensor
+    features: Optional[torch.Tensor] = None
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -130,9 +151,16 @@ class TorchGaussianSet:
         return f"TorchGaussianSet(t={self.time:g} s, {len(self)} Gaussians, {self.means.device})"
 
 
-def from_columns(time: float, columns: Sequence[np.ndarray]) -> GaussianSet:
+def from_columns(
+    time: float,
+    columns: Sequence[np.ndarray],
+    features: Optional[np.ndarray] = None,
+    feature_width: int = 0,
+) -> GaussianSet:
     """A set from the five wire columns (means, scales, rotations, opacities, colours), each
-    flat or shaped, any float dtype; widened to ``float32``."""
+    flat or shaped, any float dtype; widened to ``float32``. ``features``, flat or shaped, holds
+    ``feature_width`` floats per Gaussian (the width is given, not inferred: a set of no
+    Gaussians still has one)."""
     means, scales, rotations, opacities, colors = (np.asarray(c, dtype=np.float32) for c in columns)
     n = opacities.size
     return GaussianSet(
@@ -142,6 +170,7 @@ def from_columns(time: float, columns: Sequence[np.ndarray]) -> GaussianSet:
         scales.reshape(n, 3),
         opacities.reshape(n),
         colors.reshape(n, 3),
+        None if features is None else np.asarray(features, dtype=np.float32).reshape(n, feature_width),
     )
 
 
@@ -149,25 +178,33 @@ def from_json(body: Dict[str, Any]) -> List[GaussianSet]:
     """The sets of the gaussians endpoint's JSON answer (``{"frames": [...]}``).
 
     The server writes each ``f32`` as the shortest decimal that reads back to it, so parsing as
-    a double and rounding to ``float32`` gives the server's values bit for bit.
+    a double and rounding to ``float32`` gives the server's values bit for bit. A frame with
+    ``features`` (one row per Gaussian) gives a set with them.
     """
     sets = []
     for frame in body["frames"]:
-        sets.append(
-            from_columns(
-                frame["t"],
-                [np.asarray(frame[name], dtype=np.float64).reshape(-1) for name, _ in WIRE_COLUMNS],
-            )
-        )
+        columns = [np.asarray(frame[name], dtype=np.float64).reshape(-1) for name, _ in WIRE_COLUMNS]
+        features, width = None, 0
+        if "features" in frame:
+            features = np.asarray(frame["features"], dtype=np.float64)
+            width = features.shape[1] if features.ndim == 2 else 0
+        sets.append(from_columns(frame["t"], columns, features, width))
     return sets
 
 
 def stack(sets: Sequence[GaussianSet]) -> Dict[str, np.ndarray]:
     """Sets of one clip (the same N Gaussians at every time, in the same order: C4G's
-    correspondence) as arrays with a leading time axis, plus ``times``."""
+    correspondence) as arrays with a leading time axis, plus ``times``; ``features`` (T, N, F)
+    too when the sets have them (all of them or none: a feature field with holes in time is
+    not one)."""
     if not sets:
         raise ValueError("no sets to stack")
     out: Dict[str, np.ndarray] = {"times": np.array([s.time for s in sets])}
     for name in ("means", "quats", "scales", "opacities", "colors"):
         out[name] = np.stack([getattr(s, name) for s in sets])
+    features = [s.features for s in sets if s.features is not None]
+    if len(features) == len(sets):
+        out["features"] = np.stack(features)
+    elif features:
+        raise ValueError(f"{len(features)} of {len(sets)} sets have features: all of them or none")
     return out
