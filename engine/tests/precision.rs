@@ -3,8 +3,11 @@
 //! decodes a real test clip into valid (finite, in-range) sets close to the f32 package's, and a
 //! package whose graphs and `model.json` disagree on their precision is refused at load.
 //!
-//! Tolerances are the converter's own test's (models/python/tests/test_precision.py), measured on
-//! this clip: f16 5e-3 in position and colour, int8 0.1 (the scene spans about 1.2 units).
+//! Tolerances, measured on this clip with margin: f16 5e-3 in colour and in position relative to
+//! each Gaussian's distance from the camera, int8 0.1 in colour and 0.05 of the distance. Position
+//! errors are relative because they grow with depth (a Gaussian is its ray times its depth), and
+//! c4g-tiny v2 puts a wall 10 units away: absolute, int8's error there was 0.133 on one CPU (AMD
+//! EPYC) and under 0.1 on another, so an absolute bound tested the CPU's int8 kernels.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 mod common;
@@ -59,11 +62,27 @@ fn max_difference(a: &[[f32; 3]], b: &[[f32; 3]]) -> f32 {
         .fold(0.0, f32::max)
 }
 
+/// The largest position difference, each Gaussian's taken relative to its distance from the
+/// camera (at least 1 unit): lower precision perturbs the decoder's activations by a fraction of
+/// their range, and a Gaussian's position is its ray times its depth, so its error grows with
+/// its depth (c4g-tiny v2 has Gaussians 10 units away, on the far wall).
+fn max_relative_position_difference(got: &[[f32; 3]], want: &[[f32; 3]]) -> f32 {
+    got.iter()
+        .zip(want)
+        .map(|(g, w)| {
+            let d = (0..3).map(|k| (g[k] - w[k]).powi(2)).sum::<f32>().sqrt();
+            d / (0..3).map(|k| w[k].powi(2)).sum::<f32>().sqrt().max(1.0)
+        })
+        .fold(0.0, f32::max)
+}
+
 #[test]
 fn f16_and_int8_packages_decode_valid_sets_close_to_f32() {
     let Some(python) = python() else { return };
     let exact = decode(&Engine::load(common::tiny_dir(), EngineOptions::default()).unwrap());
-    for (precision, bound) in [("f16", 5e-3), ("int8", 0.1)] {
+    // (precision, position bound relative to each Gaussian's distance, colour bound); measured
+    // on this clip 8e-4 / 1.7e-3 (f16) and 0.023 / 0.059 (int8), AMD EPYC.
+    for (precision, bound, colour_bound) in [("f16", 5e-3, 5e-3), ("int8", 0.05, 0.1)] {
         let dir = tempfile::tempdir().unwrap();
         convert(&python, precision, dir.path());
         let engine = Engine::load(dir.path(), EngineOptions::default()).unwrap();
@@ -71,13 +90,16 @@ fn f16_and_int8_packages_decode_valid_sets_close_to_f32() {
         // `decode` validates every set: finite values, unit rotations, opacities in [0, 1].
         let sets = decode(&engine);
         for (got, want) in sets.iter().zip(&exact) {
-            let position = max_difference(got.positions(), want.positions());
+            let position = max_relative_position_difference(got.positions(), want.positions());
             let colour = max_difference(got.colors(), want.colors());
             assert!(
                 position < bound,
-                "{precision}: position differs by {position}"
+                "{precision}: position differs by {position} of its distance"
             );
-            assert!(colour < bound, "{precision}: colour differs by {colour}");
+            assert!(
+                colour < colour_bound,
+                "{precision}: colour differs by {colour}"
+            );
         }
     }
 }

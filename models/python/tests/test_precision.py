@@ -1,10 +1,13 @@
 """Lower-precision packages (c4g.precision): c4g-tiny converted to f16 and int8 still runs on ONNX
 Runtime's CPU, keeps f32 inputs and outputs, is stamped and declared, and stays close to f32.
 
-Tolerances (measured on c4g-tiny's first test clip; the scene spans about 1.2 units in position):
-f16 rounds every weight and activation to 11 significant bits, 5e-3 in any channel; int8 quantizes
-the block MatMuls' weights per tensor and their activations per run, 0.1 in position and colour.
-Both are bounds on the maximum over 512 Gaussians, not averages."""
+Tolerances (measured on c4g-tiny's first test clip, with margin): f16 rounds every weight and activation
+to 11 significant bits, 5e-3; int8 quantizes the block MatMuls' weights per tensor and their activations
+per run, 0.1 in colour and 0.05 in position. Positions are bounded relative to each Gaussian's distance
+from the camera (at least 1 unit): a position is a ray times a depth, so its error grows with depth, and
+c4g-tiny v2 has a wall 10 units away, where int8 moved a Gaussian 0.114 units on one CPU (AMD EPYC,
+0.024 of its distance) and under 0.1 on another. Both are bounds on the maximum over 512 Gaussians, not
+averages."""
 
 import json
 from pathlib import Path
@@ -69,9 +72,11 @@ def test_converted_outputs_are_finite_and_close_to_f32(converted, exact):
     got = run(out)
     assert got.shape == exact.shape and np.isfinite(got).all()
     error = np.abs(got - exact).max(axis=(0, 1))
-    bound = {"f16": 5e-3, "int8": 0.1}[name]
-    assert error[0:3].max() < bound, f"position error {error[0:3]}"
-    assert error[11:14].max() < bound, f"colour error {error[11:14]}"
+    # Positions relative to each Gaussian's distance from the camera (at least 1): see the module doc.
+    position = (np.linalg.norm(got[..., 0:3] - exact[..., 0:3], axis=-1) / np.maximum(np.linalg.norm(exact[..., 0:3], axis=-1), 1.0)).max()
+    position_bound, colour_bound = {"f16": (5e-3, 5e-3), "int8": (0.05, 0.1)}[name]
+    assert position < position_bound, f"position error {position} of the distance"
+    assert error[11:14].max() < colour_bound, f"colour error {error[11:14]}"
     # Rotations stay unit quaternions and opacities probabilities: the head's activations are f32.
     assert np.allclose(np.linalg.norm(got[..., 6:10], axis=-1), 1.0, atol=1e-3)
     assert ((got[..., 10] >= 0) & (got[..., 10] <= 1)).all()
