@@ -55,7 +55,8 @@ class DinoPatchEmbed(nn.Module):
             patch_pos = patch_pos.reshape(1, g, g, -1).permute(0, 3, 1, 2)
             patch_pos = F.interpolate(patch_pos, size=(grid_h, grid_w), mode="bicubic", antialias=True)
             patch_pos = patch_pos.permute(0, 2, 3, 1).reshape(1, grid_h * grid_w, -1)
-        return torch.cat((cls_pos, patch_pos), dim=1)
+        # Resized in f32 (bicubic has no bf16 kernel everywhere), then back to the model's dtype.
+        return torch.cat((cls_pos, patch_pos), dim=1).to(self.pos_embed.dtype)
 
     def forward(self, images: torch.Tensor, pos_embed: torch.Tensor | None = None) -> torch.Tensor:
         n, _, h, w = images.shape

@@ -1,9 +1,9 @@
 """The model's cost on a GPU through the PyTorch mirror: the bar the ONNX path must reach there.
 
-    python -m c4g.bench_gpu --config official [--frames 4 16] [--batch 1 16] [--dtype bf16]
+    python -m c4g.bench_gpu --config official [--frames 4 16] [--batch 1 16] [--dtype bf16 fp16]
 
 Builds the model at `--config` with random weights (the cost does not depend on the values), on
-`--device` (default `cuda`), in `--dtype`, and times the encoder on T context frames and the
+`--device` (default `cuda`), in each `--dtype` (a copy of the f32 weights each), and times the encoder on T context frames and the
 decoder on B targets of a T-frame encoding (T from `--frames`, B from `--batch`): the median of
 `--repeats` calls after a warm-up, each call timed with CUDA events (wall clock on the CPU). The
 floating-point operations of one call are counted by `torch.utils.flop_counter` (matrix products
@@ -19,6 +19,7 @@ checks that it runs.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import statistics
 import sys
@@ -87,28 +88,13 @@ def vendor_peak(device: torch.device, dtype_name: str) -> float | None:
     return None
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m c4g.bench_gpu", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--config", default="official", help="a preset (official, official-small) or a config JSON")
-    ap.add_argument("--frames", type=int, nargs="+", default=[4, 16])
-    ap.add_argument("--batch", type=int, nargs="+", default=[1, 16])
-    ap.add_argument("--dtype", choices=sorted(DTYPES), default="bf16")
-    ap.add_argument("--device", default="cuda")
-    ap.add_argument("--repeats", type=int, default=10)
-    ap.add_argument("--json", type=Path, help="also write the rows here")
-    args = ap.parse_args(argv)
-
-    device = torch.device(args.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        print("bench_gpu: CUDA is not available (use --device cpu to check the harness)", file=sys.stderr)
-        return 2
-    dtype = DTYPES[args.dtype]
-    cfg = _config(args.config, 0)
-    model = build_model(cfg, seed=0, checkpoint=None).to(device=device, dtype=dtype)
-    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
+def bench(model, cfg, device: torch.device, dtype_name: str, args) -> dict:
+    """One dtype's table (printed) and its rows."""
+    dtype = DTYPES[dtype_name]
     measured_peak = matmul_peak(device, dtype, args.repeats)
-    spec_peak = vendor_peak(device, args.dtype)
-    print(f"device: {name}; {args.dtype}; torch {torch.__version__}; config {args.config}")
+    spec_peak = vendor_peak(device, dtype_name)
+    print()
+    print(f"{dtype_name}:")
     n = 8192 if device.type == "cuda" else 1024
     print(f"peak: {measured_peak:.3g} TFLOP/s measured ({n}² matrix product)" + (f", {spec_peak:.0f} data sheet" if spec_peak else ""))
     print()
@@ -147,8 +133,37 @@ def main(argv: list[str] | None = None) -> int:
                     f"| {row['of_measured_peak']:.1%} | {spec} |",
                     flush=True,
                 )
+    return {"dtype": dtype_name, "measured_peak_tflops": measured_peak, "spec_peak_tflops": spec_peak, "rows": rows}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m c4g.bench_gpu", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--config", default="official", help="a preset (official, official-small) or a config JSON")
+    ap.add_argument("--frames", type=int, nargs="+", default=[4, 16])
+    ap.add_argument("--batch", type=int, nargs="+", default=[1, 16])
+    ap.add_argument("--dtype", choices=sorted(DTYPES), nargs="+", default=["bf16"])
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--json", type=Path, help="also write the rows here")
+    args = ap.parse_args(argv)
+
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        print("bench_gpu: CUDA is not available (use --device cpu to check the harness)", file=sys.stderr)
+        return 2
+    cfg = _config(args.config, 0)
+    base = build_model(cfg, seed=0, checkpoint=None)
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
+    print(f"device: {name}; torch {torch.__version__}; config {args.config}")
+    runs = []
+    for dtype_name in args.dtype:
+        model = copy.deepcopy(base).to(device=device, dtype=DTYPES[dtype_name])
+        runs.append(bench(model, cfg, device, dtype_name, args))
+        del model
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
     if args.json:
-        args.json.write_text(json.dumps({"device": name, "dtype": args.dtype, "measured_peak_tflops": measured_peak, "spec_peak_tflops": spec_peak, "rows": rows}, indent=1))
+        args.json.write_text(json.dumps({"device": name, "runs": runs}, indent=1))
     return 0
 
 

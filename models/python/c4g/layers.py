@@ -44,6 +44,8 @@ class RotaryEmbedding2D(nn.Module):
     @staticmethod
     def apply(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
         """Rotate x [..., L, head_dim] by the tables from `cos_sin`."""
+        # The tables are made in f32; a model cast to bf16 / f16 rotates in its own dtype.
+        cos, sin = cos.to(x.dtype), sin.to(x.dtype)
         half = x.shape[-1] // 2
         rotated = []
         for part in (x[..., :half], x[..., half:]):

@@ -82,7 +82,9 @@ def render(
     # Front to back; invalid Gaussians last (their alpha is zero anyway). Stable: ties by index.
     order = torch.sort(torch.where(valid, z, torch.full_like(z, float("inf"))), stable=True).indices
     ys, xs = torch.meshgrid(
-        torch.arange(height, dtype=dtype) + 0.5, torch.arange(width, dtype=dtype) + 0.5, indexing="ij"
+        torch.arange(height, dtype=dtype, device=means.device) + 0.5,
+        torch.arange(width, dtype=dtype, device=means.device) + 0.5,
+        indexing="ij",
     )
     px, py = xs.reshape(1, -1), ys.reshape(1, -1)
     o = order
@@ -96,7 +98,7 @@ def render(
     trans_before = torch.cat((torch.ones_like(trans_after[:1]), trans_after[:-1]), dim=0)
     weight = alpha * trans_before  # [N, HW]
 
-    final_t = trans_after[-1] if len(o) else torch.ones(height * width, dtype=dtype)
+    final_t = trans_after[-1] if len(o) else torch.ones(height * width, dtype=dtype, device=means.device)
     rgb = weight.T @ colors[o].to(dtype)
     if background is not None:
         rgb = rgb + final_t[:, None] * background.to(dtype)

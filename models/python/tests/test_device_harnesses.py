@@ -14,10 +14,14 @@ from c4g import bench_gpu, ort_parity
 def test_bench_gpu_counts_the_work_of_each_call_and_its_share_of_the_peak(tmp_path):
     out = tmp_path / "rows.json"
     code = bench_gpu.main(
-        ["--device", "cpu", "--config", "official-small", "--dtype", "fp32", "--frames", "2", "--batch", "1", "2", "--repeats", "1", "--json", str(out)]
+        ["--device", "cpu", "--config", "official-small", "--dtype", "fp32", "bf16", "--frames", "2", "--batch", "1", "2", "--repeats", "1", "--json", str(out)]
     )
     assert code == 0
-    rows = json.loads(out.read_text())["rows"]
+    runs = json.loads(out.read_text())["runs"]
+    assert [r["dtype"] for r in runs] == ["fp32", "bf16"]
+    # The work does not depend on the dtype (the same calls, counted the same way).
+    assert [r["tflop"] for r in runs[0]["rows"]] == [r["tflop"] for r in runs[1]["rows"]]
+    rows = runs[0]["rows"]
     assert [(r["call"], r["frames"], r["batch"]) for r in rows] == [("encode", 2, 0), ("decode", 2, 1), ("decode", 2, 2)]
     # Two targets are twice the decoder's work of one (every layer runs per target).
     assert rows[2]["tflop"] == pytest.approx(2 * rows[1]["tflop"], rel=1e-6)
