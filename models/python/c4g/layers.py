@@ -44,8 +44,9 @@ class RotaryEmbedding2D(nn.Module):
     @staticmethod
     def apply(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
         """Rotate x [..., L, head_dim] by the tables from `cos_sin`."""
-        # The tables are made in f32; a model cast to bf16 / f16 rotates in its own dtype.
-        cos, sin = cos.to(x.dtype), sin.to(x.dtype)
+        # The tables are made in f32 on the CPU; a model cast to bf16 / f16, or moved to a GPU,
+        # rotates in its own dtype, on its own device.
+        cos, sin = cos.to(x), sin.to(x)
         half = x.shape[-1] // 2
         rotated = []
         for part in (x[..., :half], x[..., half:]):
