@@ -635,7 +635,7 @@ def document(results: dict, png_name: str) -> str:
         "guidance 1 and 5; `benchmarks.md`), and the sampler does not change it: UniPC and Euler both run the "
         "transformer once per step (`refiner/src/pipeline.rs`; twice with guidance ≠ 1), so time is linear in steps "
         "times guidance runs plus the fixed control input and decode. The trade needs trained Wan-VACE weights.")
-    add("- **The GPU rasterizer and CUDA**: this machine has no GPU.")
+    add("- **A GPU**: this sweep runs where the service's tests run, on CPUs; the GPU's table is the section *On a GPU* below (`scripts/device-check`, through the PyTorch mirror).")
     add("- **The network**: sets per second are produced sets; the gRPC stream adds serialisation (the C4GS round trip "
         "is in the JSON as `wire_ms_per_frame`) and transport.")
     add("")
@@ -651,11 +651,11 @@ def document(results: dict, png_name: str) -> str:
 
 
 # Sections other benches write into the page (`engine/benches/query_dropping.rs`,
-# `engine/benches/official_keyframes.rs`), between a begin and an end marker: kept verbatim, after
+# `engine/benches/official_keyframes.rs`, `c4g.gpu_tradeoffs` on a GPU), between a begin and an end marker: kept verbatim, after
 # the sweep's own text, whenever the page is remade.
 KEPT_BEGIN = "<!-- kept: begin {name} -->"
 KEPT_END = "<!-- kept: end {name} -->"
-KEPT_SECTIONS = ("query-dropping", "official-keyframes")
+KEPT_SECTIONS = ("query-dropping", "official-keyframes", "gpu")
 
 
 def kept_sections(previous: str) -> str:
