@@ -41,7 +41,6 @@ import argparse
 import copy
 import json
 import math
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -49,6 +48,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .bench_gpu import timed
 from .config import OFFICIAL, OFFICIAL_SMALL, C4GConfig
 from .decoder import to_canonical
 from .init import random_init
@@ -87,28 +87,14 @@ class Precisions:
 
 
 class Clock:
-    """Median seconds of a call: CUDA events on a GPU, the wall clock elsewhere; two warm-ups."""
+    """Median seconds of a call after two warm-ups (`bench_gpu.timed`: CUDA events on a GPU, the
+    wall clock elsewhere)."""
 
     def __init__(self, device: torch.device, repeats: int):
         self.device, self.repeats = device, repeats
 
     def __call__(self, fn) -> float:
-        for _ in range(2):
-            fn()
-        samples = []
-        for _ in range(self.repeats):
-            if self.device.type == "cuda":
-                start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-                start.record()
-                fn()
-                end.record()
-                torch.cuda.synchronize()
-                samples.append(start.elapsed_time(end) / 1e3)
-            else:
-                t = time.perf_counter()
-                fn()
-                samples.append(time.perf_counter() - t)
-        return statistics.median(samples)
+        return timed(fn, self.device, self.repeats)
 
 
 def set_tf32(on: bool) -> None:
