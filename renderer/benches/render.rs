@@ -9,8 +9,11 @@
 //!     C4G_BENCH_BEST_OF=5 cargo bench -p c4g-renderer --features gpu --bench render
 //!
 //! `C4G_BENCH_BEST_OF=N` prints the fastest of N renders per case instead, the two footprints
-//! alternating: what compares them on a machine that other work shares. `C4G_BENCH_ONLY=gpu`
-//! leaves the CPU rasterizer out.
+//! alternating: what compares them on a machine that other work shares, and then what a frame
+//! costs with (almost) nothing to draw: 2K Gaussians all behind the camera (uploading, projecting
+//! and sorting them, and the image's own allocation) and one small Gaussian in view (that, plus
+//! reading the image's state back and finishing its pixels). `C4G_BENCH_ONLY=gpu` leaves the CPU
+//! rasterizer out.
 //!
 //! The scene is plausible rather than adversarial: Gaussians fill a frustum slab at depth 2..6 in
 //! front of a camera with C4G's default intrinsics, nearly all in view, anisotropic, randomly
@@ -154,6 +157,46 @@ fn best_of(name: &str, rasterizer: &dyn Rasterizer, reps: usize) {
                 best[1] / best[0]
             );
         }
+    }
+    eprintln!("{name}: a frame's fixed cost, the fastest of {reps} renders (ellipse footprint)");
+    eprintln!("| size | 2K behind the camera | one Gaussian in view |");
+    let behind = {
+        let set = scene(2_000);
+        let flip = |p: &[f32; 3]| [p[0], p[1], -p[2]];
+        let means: Vec<[f32; 3]> = set.positions().iter().map(flip).collect();
+        GaussianSet::new(
+            means,
+            set.scales().to_vec(),
+            set.rotations().to_vec(),
+            set.opacities().to_vec(),
+            set.colors().to_vec(),
+        )
+        .unwrap()
+    };
+    let one = GaussianSet::new(
+        vec![[0.0, 0.0, 4.0]],
+        vec![[0.01; 3]],
+        vec![[1.0, 0.0, 0.0, 0.0]],
+        vec![0.9],
+        vec![[1.0, 0.5, 0.2]],
+    )
+    .unwrap();
+    for (w, h) in SIZES {
+        let camera = camera(w, h);
+        let options = options(Footprint::Ellipse);
+        let mut best = [f64::INFINITY; 2];
+        for _ in 0..reps {
+            for (slot, set) in best.iter_mut().zip([&behind, &one]) {
+                let start = std::time::Instant::now();
+                std::hint::black_box(rasterizer.render(set, &camera, &options)).unwrap();
+                *slot = slot.min(start.elapsed().as_secs_f64());
+            }
+        }
+        eprintln!(
+            "| {w}x{h} | {:.2} ms | {:.2} ms |",
+            best[0] * 1e3,
+            best[1] * 1e3
+        );
     }
 }
 
