@@ -50,12 +50,14 @@ pub struct Config {
     /// ONNX Runtime intra-op threads (0: ONNX Runtime's default, one per core).
     #[arg(long, env = "C4G_INTRA_OP_THREADS", default_value_t = 0)]
     pub intra_op_threads: usize,
-    /// Keep ONNX Runtime's CPU memory arena: buffers are reused across decodes (faster at
-    /// large sizes: docs/benchmarks.md) but the largest run's memory stays held.
-    #[arg(long, env = "C4G_CPU_ARENA", default_value_t = false, action = clap::ArgAction::Set)]
+    /// Keep ONNX Runtime's CPU memory arena: buffers are reused across decodes (faster at every
+    /// size measured: docs/benchmarks.md, "Session defaults") but the largest run's memory stays
+    /// held; `false` gives it back after each run.
+    #[arg(long, env = "C4G_CPU_ARENA", default_value_t = true, action = clap::ArgAction::Set)]
     pub cpu_arena: bool,
-    /// Let ONNX Runtime's threads spin while waiting for work (ONNX Runtime's default).
-    #[arg(long, env = "C4G_INTRA_OP_SPINNING", default_value_t = true, action = clap::ArgAction::Set)]
+    /// Let ONNX Runtime's threads spin while waiting for work (ONNX Runtime's own default; off
+    /// here: the spinning threads take the cores the rasterizer and the other sessions need).
+    #[arg(long, env = "C4G_INTRA_OP_SPINNING", default_value_t = false, action = clap::ArgAction::Set)]
     pub intra_op_spinning: bool,
     /// Where the model runs. `cuda` needs c4g-server built with `--features cuda` and the
     /// onnxruntime-gpu library, and refuses to start without them (saying what is missing);

@@ -8,8 +8,9 @@ only) in both decoder forms, and times one decoder call per (T, B) every way, ca
 so that a noisy machine slows all alike: the median of `--repeats` calls each, and each one's ratio
 to PyTorch eager (our mirror, the plain form: `C4G.decode_canonical`). The ways: ONNX Runtime on the
 plain decoder and on the precomputed one (`c4g.precomputed`; its context projection runs once per
-clip, before the timed calls, and is timed on its own), both with the engine's session settings
-(CPU provider, no arena, threads spinning, one thread per core), and the precomputed one again with
+clip, before the timed calls, and is timed on its own), both with ONNX Runtime's session defaults
+(CPU provider, no arena, threads spinning, one thread per core: the engine's until the measurements
+here made arena on and spinning off its default), and the precomputed one again with
 `C4G_CPU_ARENA=true` and `C4G_INTRA_OP_SPINNING=false`, also as it was exported before the last
 layer's qkv projection was split (`precomputed-unsplit`: one product, q for every row; see
 `decoder.DecoderAttention.split_projection`); PyTorch with as many threads. `--forms` picks the
@@ -56,8 +57,9 @@ GRAPHS = (*DECODER_FORMS, "precomputed-unsplit")
 def session_options(
     profile_dir: Path | None = None, arena: bool = False, spinning: bool = True, denormal_as_zero: bool = False
 ) -> ort.SessionOptions:
-    """The engine's session settings: c4g-runtime's defaults (CPU arena off, threads spinning,
-    default thread count), or the `C4G_CPU_ARENA` / `C4G_INTRA_OP_SPINNING` ones asked for;
+    """Session settings: c4g-runtime's defaults (ONNX Runtime's: CPU arena off, threads spinning,
+    default thread count), or the `C4G_CPU_ARENA` / `C4G_INTRA_OP_SPINNING` ones asked for (the
+    engine's default is arena on, spinning off);
     `denormal_as_zero` sets ONNX Runtime's `session.set_denormal_as_zero` (not an engine setting)."""
     options = ort.SessionOptions()
     options.enable_cpu_mem_arena = arena
@@ -92,10 +94,10 @@ def per_op(profile: Path) -> dict[str, float]:
 
 
 SETTINGS = {
-    "engine default (no arena, spinning)": (False, True, False),
+    "ONNX Runtime's defaults (no arena, spinning)": (False, True, False),
     "C4G_CPU_ARENA=true": (True, True, False),
     "C4G_INTRA_OP_SPINNING=false": (False, False, False),
-    "both": (True, False, False),
+    "both (the engine's default)": (True, False, False),
     "both + denormals as zero": (True, False, True),
 }
 
@@ -120,7 +122,7 @@ def compare_settings(path: Path, projection: Path | None, cfg, args) -> None:
                     t = time.perf_counter()
                     s.run(None, feeds)
                     times[name].append(time.perf_counter() - t)
-            print(f"T={frames} B={batch}: " + ", ".join(f"{k} {statistics.median(v):.2f} s" for k, v in times.items()), flush=True)
+            print(f"T={frames} B={batch}: " + ", ".join(f"{k} {statistics.median(v) * 1e3:.2f} ms" for k, v in times.items()), flush=True)
 
 
 # The ONNX Runtime ways the bench times: (name, graph, arena, spinning).
@@ -274,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--settings",
         action="store_true",
-        help="instead of PyTorch, compare ONNX Runtime's session settings: the engine default, arena on, spinning off, both",
+        help="instead of PyTorch, compare ONNX Runtime's session settings: its defaults, arena on, spinning off, both (the engine's default)",
     )
     ap.add_argument("--profile", type=Path, help="write an ONNX Runtime profile of one call per way here")
     ap.add_argument(
