@@ -129,9 +129,9 @@ def _scope_parameter(node: str) -> str:
 def recover(package: Path, cfg: C4GConfig) -> dict[str, torch.Tensor]:
     """The state (parameters and buffers) of the model in `package`, whose architecture is `cfg`.
 
-    Each package constant is matched to the probe's constant of the same name, or else the one used
-    at the same place (node and input slot: exporter versions number anonymous constants
-    differently); a MatMul matrix that the probe's graph has no place for is its module's weight,
+    Each package constant is matched to the probe's constant used at the same place (node and
+    input slot), or else the one of the same name (exporters number anonymous constants per
+    export, so a package made before a change to its graph's code holds other numbers); a MatMul matrix that the probe's graph has no place for is its module's weight,
     transposed. Parameters must be covered completely, and copies must agree."""
     manifest = json.loads((package / "model.json").read_text())
     if "context_projection" in manifest["files"]:
@@ -160,7 +160,10 @@ def recover(package: Path, cfg: C4GConfig) -> dict[str, torch.Tensor]:
         actual, actual_uses = _initializers(path)
         probe_values, probe_uses = probe[graph]
         for use, name in actual_uses.items():
-            twin = name if name in probe_values else probe_uses.get(use)
+            # The place first: anonymous constants (`onnx::MatMul_N`) are numbered per export, and
+            # a change anywhere in a graph renumbers them, so a name can stand for another matrix
+            # of the same shape; a node's scope names the module it came from.
+            twin = probe_uses.get(use) or (name if name in probe_values else None)
             placed = _place(probe_values[twin], params, index) if twin is not None and probe_values[twin].shape == actual[name].shape else None
             if placed is not None:
                 put(placed, actual[name])

@@ -39,10 +39,10 @@ def feature_width(kind: str, encoder_width: int) -> int:
     raise ValueError(f"unknown feature kind {kind!r} (known: {', '.join(KINDS)})")
 
 
-def _one_hot_ids(sample: Sample, frames: np.ndarray) -> torch.Tensor:
+def _one_hot_ids(sample: Sample, frames: np.ndarray, device: torch.device) -> torch.Tensor:
     if sample.object_ids is None:
         raise ValueError("object-id lifting needs a split made with object ids (python -m c4g.dataset --object-ids)")
-    return F.one_hot(torch.from_numpy(sample.object_ids[frames]).long(), OBJECT_IDS).float()  # [V, H, W, K]
+    return F.one_hot(torch.from_numpy(sample.object_ids[frames]).long().to(device), OBJECT_IDS).float()  # [V, H, W, K]
 
 
 def _patch_mean(images: torch.Tensor, patch: int) -> torch.Tensor:
@@ -58,17 +58,18 @@ def context_maps(model: C4G, sample: Sample, features: torch.Tensor, kind: str) 
     frames' encoder features [T, P, C]."""
     if kind == "encoder":
         return features.detach()
-    return _patch_mean(_one_hot_ids(sample, sample.context), model.cfg.patch)
+    return _patch_mean(_one_hot_ids(sample, sample.context, features.device), model.cfg.patch)
 
 
 @torch.no_grad()
 def targets(model: C4G, sample: Sample, views: np.ndarray, kind: str) -> torch.Tensor:
     """What the rendered features at `views` are held to: [V, P, C] encoder features of those frames,
     or [V, H, W, K] one-hot object ids."""
+    device = model.gaussian_tokens.device
     if kind == "encoder":
-        frames = torch.from_numpy(sample.frames[views]).permute(0, 3, 1, 2) * 2 - 1
+        frames = torch.from_numpy(sample.frames[views]).to(device).permute(0, 3, 1, 2) * 2 - 1
         return model.encode(frames)
-    return _one_hot_ids(sample, views)
+    return _one_hot_ids(sample, views, device)
 
 
 def render_features(

@@ -116,3 +116,29 @@ def render(
     if weights:
         out["weights"] = torch.zeros_like(weight).index_copy(0, o, weight)
     return out
+
+
+def render_batch(
+    means: torch.Tensor,
+    scales: torch.Tensor,
+    rotations_wxyz: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    intrinsics: tuple[float, float, float, float],
+    world_to_camera: torch.Tensor,
+    width: int,
+    height: int,
+    background: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """`raster_fast.render_batch`'s contract ([B, N, ·] sets, [B, 4, 4] poses → rgb [B, H, W, 3],
+    alpha, depth, expected_depth [B, H, W]) on this dense rasterizer, one set at a time: the path for
+    tensors on a GPU, where the Numba kernels cannot run and [N, H·W] at once is cheap. Gradients
+    come from autograd through the same forward model; the cuts are constants here as there."""
+    renders = [
+        render(
+            means[b], scales[b], rotations_wxyz[b], opacities[b], colors[b], intrinsics, world_to_camera[b], width, height,
+            background=None if background is None else background[b],
+        )
+        for b in range(means.shape[0])
+    ]  # fmt: skip
+    return {key: torch.stack([r[key] for r in renders]) for key in ("rgb", "alpha", "depth", "expected_depth")}

@@ -2,8 +2,15 @@
 
     python -m c4g.train --data data/synthetic --run runs/c4g-tiny
     python -m c4g.train --data data/synthetic --run runs/c4g-tiny   # again: resumes from runs/c4g-tiny/last.pt
+    python -m c4g.train ... --device cuda --time-budget 420          # on a GPU, stopping (resumable) after 7 minutes
 
 The defaults are c4g-tiny's recipe: 2400 steps, about an hour on 2 CPU cores.
+
+Where it runs is not part of the recipe: `--device` puts the model and every step's tensors on a
+device, and the renders follow the tensors (`render_views`): the Numba tiled rasterizer on the CPU,
+the dense PyTorch one elsewhere (the same forward model; `tests/test_train.py` holds them to each
+other). A run resumes on another device than it started on; steps agree across devices up to float
+rounding, not bit for bit.
 
 Per step, a batch of clip windows (T context frames at stride 2, T drawn from --context-frames); each
 window is encoded once and decoded at every target between its context frames and at one of its
@@ -52,7 +59,7 @@ from . import lifting
 from .decoder import SH_C0, activate, to_canonical
 from .dataset import Sample, Split, random_windows, span, window
 from .model import C4G, is_feature_stream
-from .raster_fast import render_batch
+from . import raster_fast, render_torch
 from .synthetic import C4G_FOCAL
 from .time_policy import POLICIES, normalise_batch
 
@@ -199,7 +206,7 @@ def initialise_from_data(model: C4G, split: Split, clips: int = 24) -> None:
 
 def attach_gain(model: C4G):
     gain = head_gain()
-    return model.gmae_to_gaussians.register_forward_hook(lambda _m, _i, out: out * gain.to(out.dtype))
+    return model.gmae_to_gaussians.register_forward_hook(lambda _m, _i, out: out * gain.to(out))
 
 
 @torch.no_grad()
@@ -218,7 +225,7 @@ def load_trainable(model: C4G, state: dict[str, torch.Tensor]) -> None:
 
 def official_state_dict(model: C4G) -> dict[str, torch.Tensor]:
     """Weights in the official checkpoint layout (prefix `encoder.`), with the head gain folded in."""
-    state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
     gain = head_gain()
     state["gmae_to_gaussians.weight"] = state["gmae_to_gaussians.weight"] * gain[:, None]
     state["gmae_to_gaussians.bias"] = state["gmae_to_gaussians.bias"] * gain
@@ -227,7 +234,7 @@ def official_state_dict(model: C4G) -> dict[str, torch.Tensor]:
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Mean SSIM of [N, 3, H, W] images in [0, 1] (Gaussian window 11, sigma 1.5, valid region)."""
-    x = torch.arange(11, dtype=a.dtype) - 5
+    x = torch.arange(11, dtype=a.dtype, device=a.device) - 5
     g = torch.exp(-(x**2) / (2 * 1.5**2))
     g = (g / g.sum())[:, None] * (g / g.sum())[None, :]
     w = g.expand(3, 1, 11, 11)
@@ -246,6 +253,14 @@ def split_canonical(gaussians: torch.Tensor) -> tuple[torch.Tensor, ...]:
     return g[..., 0:3], g[..., 3:6], g[..., 6:10], g[..., 10], g[..., 11:14]
 
 
+def render_views(gaussians: tuple, intrinsics: tuple, world_to_camera: torch.Tensor, size: int) -> dict[str, torch.Tensor]:
+    """Renders [V, N, ·] sets (render_batch's arguments) at [V, 4, 4] poses with the rasterizer for
+    the device they are on: the Numba tiled one on the CPU (fast there), the dense PyTorch one on
+    any other device (where the Numba kernels cannot run and dense tensors are cheap)."""
+    rasterizer = raster_fast if world_to_camera.device.type == "cpu" else render_torch
+    return rasterizer.render_batch(*gaussians, intrinsics, world_to_camera, size, size)
+
+
 def predict(
     model: C4G, sample: Sample, views: np.ndarray, policy: str = "stable", features_kind: str | None = None
 ) -> tuple[dict[str, torch.Tensor], tuple]:
@@ -255,10 +270,11 @@ def predict(
     rendered features ("features" [V, H, W, F])."""
     # The source frame step the `frame-step` policy reads: the clips' own (frames are evenly timed).
     frame_step = float(sample.times[1] - sample.times[0]) if len(sample.times) > 1 else None
-    frames = torch.from_numpy(sample.frames[sample.context]).permute(0, 3, 1, 2) * 2 - 1
+    device = model.gaussian_tokens.device
+    frames = torch.from_numpy(sample.frames[sample.context]).to(device).permute(0, 3, 1, 2) * 2 - 1
     features = model.encode(frames)
     ctx_times, tgt_times = normalise_batch(sample.times[sample.context].tolist(), sample.times[views].tolist(), policy, frame_step)
-    ctx_times, tgt_times = torch.from_numpy(ctx_times), torch.from_numpy(tgt_times)
+    ctx_times, tgt_times = torch.from_numpy(ctx_times).to(device), torch.from_numpy(tgt_times).to(device)
     if features_kind is None:
         decoded, lifted = model.decode(features, ctx_times, tgt_times), None
     else:
@@ -268,9 +284,9 @@ def predict(
     size = model.cfg.image_size
     f = INTRINSICS_NORMALISED * size
     intrinsics = (f, f, size / 2, size / 2)
-    poses = torch.from_numpy(sample.world_to_camera[views]).float()
+    poses = torch.from_numpy(sample.world_to_camera[views]).float().to(device)
     gaussians = split_canonical(to_canonical(decoded))
-    out = render_batch(*gaussians, intrinsics, poses, size, size)
+    out = render_views(gaussians, intrinsics, poses, size)
     if lifted is not None:
         out["features"] = lifting.render_features(gaussians, lifted, intrinsics, poses, size)
     return out, gaussians
@@ -294,12 +310,13 @@ def surface_points(sample: Sample, views: np.ndarray, count: int, rng: np.random
 def loss_terms(
     out: dict[str, torch.Tensor], gaussians: tuple, sample: Sample, views: np.ndarray, dynamic_weight: float, rng: np.random.Generator
 ) -> dict[str, torch.Tensor]:
-    gt = torch.from_numpy(sample.frames[views])
-    dyn = torch.from_numpy(sample.dynamic[views]).float()
+    device = out["rgb"].device
+    gt = torch.from_numpy(sample.frames[views]).to(device)
+    dyn = torch.from_numpy(sample.dynamic[views]).float().to(device)
     w = (1 + dynamic_weight * dyn)[..., None]
     mse = ((out["rgb"] - gt) ** 2 * w).mean() / w.mean()
     s = ssim(out["rgb"].permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2))
-    gt_depth = torch.from_numpy(sample.depth[views])
+    gt_depth = torch.from_numpy(sample.depth[views]).to(device)
     mask = (gt_depth > 0) & (out["alpha"] > 0.3)
     inv = (1 / out["expected_depth"].clamp_min(1e-3) - 1 / gt_depth.clamp_min(1e-3)).abs()
     depth = (inv * mask).sum() / mask.sum().clamp_min(1)
@@ -308,7 +325,7 @@ def loss_terms(
     # pulled onto the nearest surface point and takes its colour; every surface point wants a
     # Gaussian near it. Rendering alone lets a few large, half-transparent Gaussians blur the scene
     # into its mean colour; this gives each Gaussian its own target.
-    points, colours = surface_points(sample, views, 1024, rng)
+    points, colours = (t.to(device) for t in surface_points(sample, views, 1024, rng))
     means, rgb = gaussians[0], gaussians[4]
     # Distances relative to each view's median depth: scenes range over an order of magnitude in
     # model units (the unit is the camera baseline), and far walls should not dominate.
@@ -332,7 +349,7 @@ def validate(model: C4G, split: Split, context_frames: int, policy: str = "stabl
     for clip in range(len(split)):
         s = window(split, clip, 0, context_frames)
         out, _ = predict(model, s, s.targets, policy)
-        errors.append(float(((out["rgb"].clamp(0, 1) - torch.from_numpy(s.frames[s.targets])) ** 2).mean()))
+        errors.append(float(((out["rgb"].cpu().clamp(0, 1) - torch.from_numpy(s.frames[s.targets])) ** 2).mean()))
     model.train()
     return {"val_psnr": float(np.mean([psnr(e) for e in errors]))}
 
@@ -360,6 +377,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--targets-per-window", type=int, default=None, help="render at most this many of a window's targets (drawn per step); default all of them")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--device", default="cpu", help="where the model and the steps run (cpu, cuda, cuda:1, ...); not part of the recipe")
+    ap.add_argument("--time-budget", type=float, default=None, help="stop (with a checkpoint) once a step ends this many seconds into this invocation; run again to resume")
     ap.add_argument("--checkpoint-every", type=int, default=100)
     ap.add_argument("--validate-every", type=int, default=300)
     ap.add_argument("--stop-after", type=int, default=None, help="stop (with a checkpoint) after this many steps in this invocation; run again to resume")
@@ -374,7 +393,7 @@ def main(argv: list[str] | None = None) -> int:
     recipe = {
         k: (str(v) if isinstance(v, Path) else v)
         for k, v in vars(args).items()
-        if k not in ("run", "threads", "checkpoint_every", "validate_every", "stop_after", *lifting_settings) and v1_defaults.get(k, object()) != v
+        if k not in ("run", "threads", "device", "time_budget", "checkpoint_every", "validate_every", "stop_after", *lifting_settings) and v1_defaults.get(k, object()) != v
     }
     features_kind = None if args.features == "none" else args.features
     cfg = TINY
@@ -403,6 +422,9 @@ def main(argv: list[str] | None = None) -> int:
         load_trainable(model, read_state_dict(args.init_from))
         recipe["init_from_sha256"] = sha256(args.init_from)
     attach_gain(model)
+    # Initialised (from data, or a checkpoint) on the CPU; trained where asked.
+    device = torch.device(args.device)
+    model.to(device)
     if args.feature_stream_only:
         if features_kind is None or args.init_from is None:
             print("error: --feature-stream-only trains a feature stream (--features) on a model from --init-from", file=sys.stderr)
@@ -416,7 +438,7 @@ def main(argv: list[str] | None = None) -> int:
     step = 0
     last = args.run / "last.pt"
     if last.exists():
-        state = torch.load(last, weights_only=False)
+        state = torch.load(last, weights_only=False, map_location=device)
         if state["recipe"] != recipe:
             print("error: last.pt was written with a different recipe; use a new --run folder", file=sys.stderr)
             return 2
@@ -480,10 +502,13 @@ def main(argv: list[str] | None = None) -> int:
         log.flush()
         if step % 10 == 0 or "val_psnr" in record:
             print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in record.items()), flush=True)
-        if step % args.checkpoint_every == 0 or step == end:
+        out_of_time = args.time_budget is not None and time.time() - t0 >= args.time_budget
+        if step % args.checkpoint_every == 0 or step == end or out_of_time:
             tmp = last.with_suffix(".tmp")
             torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step, "recipe": recipe}, tmp)
             tmp.replace(last)
+        if out_of_time:
+            break
     if step < args.steps:
         print(f"stopped at step {step} of {args.steps}; run the same command again to resume")
         return 0

@@ -40,8 +40,39 @@ def test_a_stopped_and_resumed_run_ends_where_an_uninterrupted_one_does(tmp_path
     split = torch.load(tmp_path / "split/c4g-tiny.ckpt")["state_dict"]
     for k in whole:
         np.testing.assert_allclose(split[k].numpy(), whole[k].numpy(), rtol=1e-5, atol=1e-6, err_msg=k)
+    # A time budget stops after the step that runs past it (here the first), as resumable as a step count.
+    assert main([*common, "--run", str(tmp_path / "timed"), "--time-budget", "0"]) == 0
+    assert torch.load(tmp_path / "timed/last.pt", weights_only=False)["step"] == 1
+    assert main([*common, "--run", str(tmp_path / "timed")]) == 0
+    timed = torch.load(tmp_path / "timed/c4g-tiny.ckpt")["state_dict"]
+    for k in whole:
+        np.testing.assert_allclose(timed[k].numpy(), whole[k].numpy(), rtol=1e-5, atol=1e-6, err_msg=k)
     # A different recipe in the same folder is refused rather than silently mixed.
     assert main([*common[:-4], "--lr", "1e-3", "--run", str(tmp_path / "split")]) == 2
+
+
+def test_a_step_off_the_cpu_renders_through_the_dense_rasterizer_to_the_same_loss(tmp_path, monkeypatch):
+    """Off the CPU (a GPU run: `--device cuda`) the renders are `render_torch`'s, since the Numba
+    kernels run on the CPU only. No GPU here: the CPU stands in for the device, with the dense
+    rasterizer put where the tiled one is chosen. One step each way from the same start: the loss
+    terms, made before any update, and the gradient's norm agree to float rounding (the two
+    rasterizers sum in different orders; their backward passes are held to each other in
+    test_raster_fast.py)."""
+    import json
+
+    import c4g.render_torch
+    import c4g.train
+
+    data = tmp_path / "data"
+    generate("train", 2, data, processes=1)
+    generate("validation", 1, data, processes=1)
+    common = ["--data", str(data), "--steps", "1", "--batch", "2", "--context-frames", "3", "--threads", "1", "--validate-every", "1000"]
+    assert main([*common, "--run", str(tmp_path / "tiled")]) == 0
+    monkeypatch.setattr(c4g.train, "raster_fast", c4g.render_torch)
+    assert main([*common, "--run", str(tmp_path / "dense")]) == 0
+    tiled, dense = (json.loads((tmp_path / run / "log.jsonl").read_text().splitlines()[0]) for run in ("tiled", "dense"))
+    for key in ("mse", "ssim", "depth", "alpha", "chamfer", "colour", "grad_norm"):
+        assert abs(dense[key] - tiled[key]) <= 1e-4 * abs(tiled[key]) + 1e-7, (key, tiled[key], dense[key])
 
 
 def test_windows_at_wider_strides_put_targets_between_their_context_frames(tmp_path):
