@@ -11,7 +11,12 @@ written separately, never trained on). Protocol per clip, at 64 x 64 and 10 fps,
 - novel views: the same times from a camera moved off the path (`c4g.evaluate`'s NOVEL_OFFSET
   and NOVEL_YAW, in the model's units), against the scene rendered there;
 - baselines: the mean colour of the context frames, the nearest context frame (the earlier of
-  two equidistant ones), the average of the two neighbours; held as they are at novel views.
+  two equidistant ones), the average of the two neighbours; held as they are at novel views;
+- ceilings (oracles: they see the true frame): the true frame with each of the package's query
+  blocks averaged (each Gaussian starts as a splat of one such block, `c4g.train.QUERY_GRID` a
+  patch: what its Gaussians can draw when each covers its own block exactly), and with each patch
+  averaged (what a model drawing patch-sized blobs can reach); the model's own render of the
+  context frames it was given (*reconstructed*), against them: what it keeps of its input.
 Inputs and truths are quantised to 8 bits first, as the service sees them; PSNR from
 `metrics_reference`. Prints a Markdown table of mean PSNR (with the clip count) and writes
 `generalisation.json` to `--out` when given.
@@ -32,9 +37,11 @@ from . import eval_world, synthetic
 from .evaluate import novel_pose, novel_world_poses, quantise, render_gaussians
 from .metrics_reference import psnr
 from .time_policy import normalise_batch
+from .train import QUERY_GRID
 
 WORLDS = ("train-world", "eval-world")
 METHODS = ("model", "mean colour", "nearest context frame", "blend of neighbours")
+CEILINGS = ("true frame in query blocks", "true frame in patches", "model, reconstructed")
 
 
 class Package:
@@ -51,6 +58,7 @@ class Package:
         self.projection = ort.InferenceSession(str(projection), options, providers=cpu) if projection.exists() else None
         self.policy = self.manifest.get("time_policy", "frame-step")
         self.size = self.manifest["input"]["width"]
+        self.patch = int(self.manifest["architecture"]["patch"])
 
     def gaussians(self, frames_u8: np.ndarray, context_times: list[float], targets: list[float], frame_step: float) -> np.ndarray:
         """Canonical Gaussians [B, N, 14] at `targets` from context frames [T, H, W, 3] (uint8)."""
@@ -81,6 +89,13 @@ def world_clip(world: str, index: int, frames: int, size: int):
     return rgb, depth, w2c, again
 
 
+def block_mean(image: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """[H, W, 3] with every `rows` x `cols` block replaced by its mean."""
+    h, w, c = image.shape
+    means = image.reshape(h // rows, rows, w // cols, cols, c).mean(axis=(1, 3), keepdims=True)
+    return np.broadcast_to(means, (h // rows, rows, w // cols, cols, c)).reshape(h, w, c)
+
+
 def score_clip(package: Package, world: str, index: int, stride: int) -> dict:
     size = package.size
     context = np.arange(4) * stride
@@ -94,21 +109,34 @@ def score_clip(package: Package, world: str, index: int, stride: int) -> dict:
     novel_model = np.stack([novel_pose(w2c[i]) for i in targets])
     novel_truth = quantise(again(times[targets], novel_world_poses(novel_model, w2c_world[0], scale))).astype(np.float32) / 255.0
 
-    gaussians = package.gaussians(frames_u8[context], times[context].tolist(), times[targets].tolist(), 1.0 / synthetic.FPS)
+    views = np.concatenate((targets, context))
+    gaussians = package.gaussians(frames_u8[context], times[context].tolist(), times[views].tolist(), 1.0 / synthetic.FPS)
     with torch.no_grad():
-        interp = render_gaussians(torch.from_numpy(gaussians), w2c[targets], size)
-        novel = render_gaussians(torch.from_numpy(gaussians), novel_model, size)
+        rendered = render_gaussians(torch.from_numpy(gaussians), w2c[views], size)
+        novel = render_gaussians(torch.from_numpy(gaussians[: len(targets)]), novel_model, size)
+    interp, reconstructed = rendered[: len(targets)], rendered[len(targets) :]
     mean_colour = np.broadcast_to(frames[context].mean(axis=(0, 1, 2)), frames[0].shape)
     before = [frames[t - stride // 2] for t in targets]
     blend = [(frames[t - stride // 2] + frames[t + stride // 2]) / 2 for t in targets]
-    methods = {"model": (interp, novel), "mean colour": ([mean_colour] * len(targets),) * 2, "nearest context frame": (before,) * 2, "blend of neighbours": (blend,) * 2}
-    return {
+    rows, cols = package.patch // QUERY_GRID[0], package.patch // QUERY_GRID[1]
+    in_blocks = lambda images, r, c: [block_mean(i, r, c) for i in images]  # noqa: E731
+    methods = {
+        "model": (interp, novel),
+        "mean colour": ([mean_colour] * len(targets),) * 2,
+        "nearest context frame": (before,) * 2,
+        "blend of neighbours": (blend,) * 2,
+        "true frame in query blocks": (in_blocks(frames[targets], rows, cols), in_blocks(novel_truth, rows, cols)),
+        "true frame in patches": (in_blocks(frames[targets], package.patch, package.patch), in_blocks(novel_truth, package.patch, package.patch)),
+    }
+    scores = {
         name: {
             "interpolated": float(np.mean([psnr(a[k], frames[t]) for k, t in enumerate(targets)])),
             "novel": float(np.mean([psnr(b[k], novel_truth[k]) for k in range(len(targets))])),
         }
         for name, (a, b) in methods.items()
     }
+    scores["model, reconstructed"] = {"interpolated": float(np.mean([psnr(r, frames[c]) for r, c in zip(reconstructed, context)])), "novel": None}
+    return scores
 
 
 def protocol_arguments(ap: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
@@ -144,10 +172,13 @@ def main(argv: list[str] | None = None) -> int:
         for stride in args.strides:
             clips = [score_clip(package, world, i, stride) for i in range(args.clips)]
             results[f"{world}, stride {stride}"] = {
-                name: {view: float(np.mean([c[name][view] for c in clips])) for view in ("interpolated", "novel")} for name in METHODS
+                name: {view: None if clips[0][name][view] is None else float(np.mean([c[name][view] for c in clips])) for view in ("interpolated", "novel")}
+                for name in (*METHODS, *CEILINGS)
             }
             print(f"{world}, stride {stride}: done", file=sys.stderr, flush=True)
     print_table(package, args, "mean PSNR (dB)", results, METHODS, 2)
+    print("\nCeilings (oracles that see the true frame) and the model's render of its own context frames (at their cameras):\n")
+    print_table(package, args, "mean PSNR (dB)", results, CEILINGS, 2)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "generalisation.json").write_text(json.dumps({"package": str(args.package), "clips": args.clips, "results": results}, indent=1))

@@ -50,12 +50,16 @@ def test_the_harness_scores_the_default_package_and_its_baselines_on_both_worlds
     package = generalisation.Package(TINY)
     for world in generalisation.WORLDS:
         scores = generalisation.score_clip(package, world, 0, 2)
-        assert set(scores) == set(generalisation.METHODS)
+        assert set(scores) == {*generalisation.METHODS, *generalisation.CEILINGS}
         for view in ("interpolated", "novel"):
-            values = [scores[m][view] for m in generalisation.METHODS]
+            values = [scores[m][view] for m in generalisation.METHODS + generalisation.CEILINGS[:2]]
             assert all(np.isfinite(v) and 5 < v < 60 for v in values), scores
+            # The finer the blocks an oracle averages, the closer to the truth.
+            assert scores["true frame in query blocks"][view] > scores["true frame in patches"][view] > scores["mean colour"][view]
         # Two neighbours averaged beat the mean colour at the frames between them.
         assert scores["blend of neighbours"]["interpolated"] > scores["mean colour"]["interpolated"]
+        # The context frames are rendered at their own cameras, not from a novel one.
+        assert 5 < scores["model, reconstructed"]["interpolated"] < 60 and scores["model, reconstructed"]["novel"] is None
     assert synthetic.FPS == eval_world.FPS
 
 
