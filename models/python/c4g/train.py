@@ -14,7 +14,7 @@ rounding, not bit for bit.
 
 Per step, a batch of clip windows (T context frames at stride 2, T drawn from --context-frames); each
 window is encoded once and decoded at every target between its context frames and at one of its
-context frames; the Gaussians are rendered with the fast rasterizer at the ground-truth cameras.
+context frames; the Gaussians are rendered (`render_views`) at the ground-truth cameras.
 Loss: MSE (dynamic pixels up-weighted) + SSIM term + inverse-depth L1 + alpha MSE + Chamfer terms
 (each Gaussian to the nearest visible ground-truth surface point, and its colour; every such point
 to its nearest Gaussian).
@@ -55,11 +55,10 @@ import torch.nn.functional as F
 
 from .checkpoint import feature_dim_of, load_into, read_state_dict, sha256
 from .config import C4GConfig
-from . import lifting
+from . import lifting, raster_fast, render_torch
 from .decoder import SH_C0, activate, to_canonical
 from .dataset import Sample, Split, random_windows, span, window
 from .model import C4G, is_feature_stream
-from . import raster_fast, render_torch
 from .synthetic import C4G_FOCAL
 from .time_policy import POLICIES, normalise_batch
 
