@@ -35,9 +35,14 @@ SIZE = 64
 
 
 def _one_thread() -> None:
+    """A worker's libraries on one thread each: the pool runs a worker per core, and the Numba
+    rasterizer's parallel loops would otherwise start a thread per core in every worker (on a
+    16-core machine, 256 threads contending for 16 cores)."""
+    import numba
     import torch
 
     torch.set_num_threads(1)
+    numba.set_num_threads(1)
 
 
 def _render(job: tuple[int, int, int, bool]) -> tuple:
