@@ -383,6 +383,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stop-after", type=int, default=None, help="stop (with a checkpoint) after this many steps in this invocation; run again to resume")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        print(f"error: --device {args.device}: this PyTorch sees no CUDA device", file=sys.stderr)
+        return 2
     args.run.mkdir(parents=True, exist_ok=True)
     # Defaults that c4g-tiny (v1) was trained before they existed are left out of its recipe, so
     # its runs still resume and its recipe stays as it was.
@@ -422,7 +426,6 @@ def main(argv: list[str] | None = None) -> int:
         recipe["init_from_sha256"] = sha256(args.init_from)
     attach_gain(model)
     # Initialised (from data, or a checkpoint) on the CPU; trained where asked.
-    device = torch.device(args.device)
     model.to(device)
     if args.feature_stream_only:
         if features_kind is None or args.init_from is None:

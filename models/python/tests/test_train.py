@@ -139,3 +139,13 @@ def test_a_run_from_a_checkpoint_starts_from_its_weights_and_caps_its_targets(tm
         torch.testing.assert_close(after[k], before[k], rtol=1e-6, atol=1e-7, msg=k)
     recipe = json.loads((run / "recipe.json").read_text())
     assert recipe["targets_per_window"] == 2 and len(recipe["init_from_sha256"]) == 64
+
+
+def test_a_cuda_device_that_is_not_there_is_refused_before_any_work(tmp_path, capsys):
+    import pytest
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    assert main(["--data", str(tmp_path / "none"), "--run", str(tmp_path / "run"), "--device", "cuda"]) == 2
+    assert "sees no CUDA device" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
