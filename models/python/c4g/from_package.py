@@ -131,8 +131,8 @@ def recover(package: Path, cfg: C4GConfig) -> dict[str, torch.Tensor]:
 
     Each package constant is matched to the probe's constant used at the same place (node and
     input slot), or else the one of the same name (exporters number anonymous constants per
-    export, so a package made before a change to its graph's code holds other numbers); a MatMul matrix that the probe's graph has no place for is its module's weight,
-    transposed. Parameters must be covered completely, and copies must agree."""
+    export, so a package made before a change to its graph's code holds other numbers); a MatMul
+    matrix that the probe's graph has no place for is its module's weight, transposed. Parameters must be covered completely, and copies must agree."""
     manifest = json.loads((package / "model.json").read_text())
     if "context_projection" in manifest["files"]:
         # The precomputed form folds the first decoder layer's norm into its projection: only the
