@@ -16,7 +16,11 @@ written separately, never trained on). Protocol per clip, at 64 x 64 and 10 fps,
   blocks averaged (each Gaussian starts as a splat of one such block, `c4g.train.QUERY_GRID` a
   patch: what its Gaussians can draw when each covers its own block exactly), and with each patch
   averaged (what a model drawing patch-sized blobs can reach); the model's own render of the
-  context frames it was given (*reconstructed*), against them: what it keeps of its input.
+  context frames it was given (*reconstructed*), against them: what it keeps of its input;
+  the model's Gaussians at the *true depth scale* (scaled about the first camera, which leaves
+  that camera's image as it is, so their median depth is the first frame's true median depth):
+  what its geometry costs it beyond the scale. The scale is printed too (`depth ratio`: the
+  model's median depth over the truth's, geometric mean and range over the clips).
 Inputs and truths are quantised to 8 bits first, as the service sees them; PSNR from
 `metrics_reference`. Prints a Markdown table of mean PSNR (with the clip count) and writes
 `generalisation.json` to `--out` when given.
@@ -41,7 +45,7 @@ from .train import QUERY_GRID
 
 WORLDS = ("train-world", "eval-world")
 METHODS = ("model", "mean colour", "nearest context frame", "blend of neighbours")
-CEILINGS = ("true frame in query blocks", "true frame in patches", "model, reconstructed")
+CEILINGS = ("true frame in query blocks", "true frame in patches", "model, reconstructed", "model at the true depth scale")
 
 
 class Package:
@@ -114,6 +118,12 @@ def score_clip(package: Package, world: str, index: int, stride: int) -> dict:
     with torch.no_grad():
         rendered = render_gaussians(torch.from_numpy(gaussians), w2c[views], size)
         novel = render_gaussians(torch.from_numpy(gaussians[: len(targets)]), novel_model, size)
+        # Scaling every position and size about the first camera's centre leaves its image as it
+        # is and scales the parallax every other camera sees.
+        ratio = float(np.median(gaussians[: len(targets), :, 2]) / np.median(depth[0][depth[0] > 0] * scale))
+        rescaled = gaussians[: len(targets)].copy()
+        rescaled[..., 0:6] /= ratio
+        at_true_scale = render_gaussians(torch.from_numpy(rescaled), w2c[targets], size)
     interp, reconstructed = rendered[: len(targets)], rendered[len(targets) :]
     mean_colour = np.broadcast_to(frames[context].mean(axis=(0, 1, 2)), frames[0].shape)
     before = [frames[t - stride // 2] for t in targets]
@@ -136,6 +146,8 @@ def score_clip(package: Package, world: str, index: int, stride: int) -> dict:
         for name, (a, b) in methods.items()
     }
     scores["model, reconstructed"] = {"interpolated": float(np.mean([psnr(r, frames[c]) for r, c in zip(reconstructed, context)])), "novel": None}
+    scores["model at the true depth scale"] = {"interpolated": float(np.mean([psnr(a, frames[t]) for a, t in zip(at_true_scale, targets)])), "novel": None}
+    scores["depth ratio"] = ratio
     return scores
 
 
@@ -175,10 +187,16 @@ def main(argv: list[str] | None = None) -> int:
                 name: {view: None if clips[0][name][view] is None else float(np.mean([c[name][view] for c in clips])) for view in ("interpolated", "novel")}
                 for name in (*METHODS, *CEILINGS)
             }
+            ratios = np.log([c["depth ratio"] for c in clips])
+            results[f"{world}, stride {stride}"]["depth ratio"] = {"geometric mean": float(np.exp(ratios.mean())), "min": float(np.exp(ratios.min())), "max": float(np.exp(ratios.max()))}
             print(f"{world}, stride {stride}: done", file=sys.stderr, flush=True)
     print_table(package, args, "mean PSNR (dB)", results, METHODS, 2)
     print("\nCeilings (oracles that see the true frame) and the model's render of its own context frames (at their cameras):\n")
     print_table(package, args, "mean PSNR (dB)", results, CEILINGS, 2)
+    print("\nDepth ratio (the model's median depth over the truth's, first frame; geometric mean [min, max]):\n")
+    for key, scores in results.items():
+        r = scores["depth ratio"]
+        print(f"- {key}: {r['geometric mean']:.2f} [{r['min']:.2f}, {r['max']:.2f}]")
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "generalisation.json").write_text(json.dumps({"package": str(args.package), "clips": args.clips, "results": results}, indent=1))

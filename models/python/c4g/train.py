@@ -15,7 +15,8 @@ rounding, not bit for bit.
 Per step, a batch of clip windows (T context frames at stride 2, T drawn from --context-frames); each
 window is encoded once and decoded at every target between its context frames and at one of its
 context frames; the Gaussians are rendered (`render_views`) at the ground-truth cameras.
-Loss: MSE (dynamic pixels up-weighted) + SSIM term + inverse-depth L1 + alpha MSE + Chamfer terms
+Loss: MSE (dynamic pixels up-weighted) + SSIM term + depth L1 (of the inverse depth, or of its log:
+--depth-loss) + alpha MSE + Chamfer terms
 (each Gaussian to the nearest visible ground-truth surface point, and its colour; every such point
 to its nearest Gaussian).
 
@@ -307,7 +308,8 @@ def surface_points(sample: Sample, views: np.ndarray, count: int, rng: np.random
 
 
 def loss_terms(
-    out: dict[str, torch.Tensor], gaussians: tuple, sample: Sample, views: np.ndarray, dynamic_weight: float, rng: np.random.Generator
+    out: dict[str, torch.Tensor], gaussians: tuple, sample: Sample, views: np.ndarray, dynamic_weight: float, rng: np.random.Generator,
+    depth_loss: str = "inverse",
 ) -> dict[str, torch.Tensor]:
     device = out["rgb"].device
     gt = torch.from_numpy(sample.frames[views]).to(device)
@@ -317,8 +319,15 @@ def loss_terms(
     s = ssim(out["rgb"].permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2))
     gt_depth = torch.from_numpy(sample.depth[views]).to(device)
     mask = (gt_depth > 0) & (out["alpha"] > 0.3)
-    inv = (1 / out["expected_depth"].clamp_min(1e-3) - 1 / gt_depth.clamp_min(1e-3)).abs()
-    depth = (inv * mask).sum() / mask.sum().clamp_min(1)
+    predicted, truth = out["expected_depth"].clamp_min(1e-3), gt_depth.clamp_min(1e-3)
+    if depth_loss == "log":
+        # The same relative error costs the same at every distance: a slow camera puts the scene
+        # tens of baselines away, where inverse depth (and the Chamfer terms, relative to the
+        # view's depth) give the depth almost no gradient.
+        error = (predicted.log() - truth.log()).abs()
+    else:
+        error = (1 / predicted - 1 / truth).abs()
+    depth = (error * mask).sum() / mask.sum().clamp_min(1)
     alpha = ((out["alpha"] - (gt_depth > 0).float()) ** 2).mean()
     # Chamfer terms against the visible ground-truth surface at each view's moment: every Gaussian is
     # pulled onto the nearest surface point and takes its colour; every surface point wants a
@@ -367,6 +376,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dynamic-weight", type=float, default=3.0, help="extra MSE weight on pixels of moving objects")
     ap.add_argument("--ssim-weight", type=float, default=0.2)
     ap.add_argument("--depth-weight", type=float, default=0.1)
+    ap.add_argument("--depth-loss", choices=["inverse", "log"], default="inverse", help="L1 of the expected depth's inverse (c4g-tiny's recipe) or of its log")
     ap.add_argument("--alpha-weight", type=float, default=0.1)
     ap.add_argument("--surface-weight", type=float, default=0.5, help="weight of the Chamfer position and colour terms")
     ap.add_argument("--features", choices=["none", *lifting.KINDS], default="none", help="feature lifting: what the feature stream learns to lift")
@@ -390,7 +400,7 @@ def main(argv: list[str] | None = None) -> int:
     args.run.mkdir(parents=True, exist_ok=True)
     # Defaults that c4g-tiny (v1) was trained before they existed are left out of its recipe, so
     # its runs still resume and its recipe stays as it was.
-    v1_defaults = {"strides": "2", "time_policy": "stable", "init_from": None, "targets_per_window": None, "feature_stream_only": False}
+    v1_defaults = {"strides": "2", "time_policy": "stable", "init_from": None, "targets_per_window": None, "feature_stream_only": False, "depth_loss": "inverse"}
     # Feature lifting's settings are recorded only when it is on (so a run without stays c4g-tiny's).
     lifting_settings = ("features", "feature_weight") if args.features == "none" else ()
     recipe = {
@@ -476,7 +486,7 @@ def main(argv: list[str] | None = None) -> int:
                 targets = np.sort(rng.choice(targets, args.targets_per_window, replace=False))
             views = np.concatenate((targets, rng.choice(sample.context, 1)))
             out, gaussians = predict(model, sample, views, args.time_policy, features_kind)
-            terms = loss_terms(out, gaussians, sample, views, args.dynamic_weight, rng)
+            terms = loss_terms(out, gaussians, sample, views, args.dynamic_weight, rng, args.depth_loss)
             if features_kind is not None:
                 target = lifting.targets(model, sample, views, features_kind)
                 terms["feature"] = lifting.loss(model, out["features"], target, features_kind)

@@ -5,8 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from c4g import eval_world, generalisation, synthetic
+from c4g.evaluate import render_gaussians
 
 TINY = Path(__file__).resolve().parents[2] / "c4g-tiny"
 
@@ -50,7 +52,8 @@ def test_the_harness_scores_the_default_package_and_its_baselines_on_both_worlds
     package = generalisation.Package(TINY)
     for world in generalisation.WORLDS:
         scores = generalisation.score_clip(package, world, 0, 2)
-        assert set(scores) == {*generalisation.METHODS, *generalisation.CEILINGS}
+        assert set(scores) == {*generalisation.METHODS, *generalisation.CEILINGS, "depth ratio"}
+        assert 0.01 < scores["depth ratio"] < 100
         for view in ("interpolated", "novel"):
             values = [scores[m][view] for m in generalisation.METHODS + generalisation.CEILINGS[:2]]
             assert all(np.isfinite(v) and 5 < v < 60 for v in values), scores
@@ -59,8 +62,26 @@ def test_the_harness_scores_the_default_package_and_its_baselines_on_both_worlds
         # Two neighbours averaged beat the mean colour at the frames between them.
         assert scores["blend of neighbours"]["interpolated"] > scores["mean colour"]["interpolated"]
         # The context frames are rendered at their own cameras, not from a novel one.
-        assert 5 < scores["model, reconstructed"]["interpolated"] < 60 and scores["model, reconstructed"]["novel"] is None
+        for row in ("model, reconstructed", "model at the true depth scale"):
+            assert 5 < scores[row]["interpolated"] < 60 and scores[row]["novel"] is None
     assert synthetic.FPS == eval_world.FPS
+
+
+def test_scaling_gaussians_about_the_first_camera_keeps_its_image():
+    # What "model at the true depth scale" rests on: positions and sizes scaled together about the
+    # camera's centre project to the same ellipses (depth cancels), so only other cameras see it.
+    package = generalisation.Package(TINY)
+    frames = (np.random.default_rng(0).random((4, 64, 64, 3)) * 255).astype(np.uint8)
+    gaussians = package.gaussians(frames, [0.0, 0.2, 0.4, 0.6], [0.1], 0.1)
+    scaled = gaussians.copy()
+    scaled[..., 0:6] *= 7.0
+    identity = np.eye(4)[None]
+    before, after = (render_gaussians(torch.from_numpy(g), identity, 64) for g in (gaussians, scaled))
+    # Float64 rendering of the same ellipses in another order of magnitude: rounding only.
+    np.testing.assert_allclose(after, before, atol=1e-6)
+    moved = identity.copy()
+    moved[0, 0, 3] = 0.3
+    assert np.abs(render_gaussians(torch.from_numpy(scaled), moved, 64) - render_gaussians(torch.from_numpy(gaussians), moved, 64)).max() > 0.05
 
 
 def test_object_ids_cover_the_stage_and_each_thing_where_it_is_seen():

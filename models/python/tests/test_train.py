@@ -149,3 +149,26 @@ def test_a_cuda_device_that_is_not_there_is_refused_before_any_work(tmp_path, ca
     assert main(["--data", str(tmp_path / "none"), "--run", str(tmp_path / "run"), "--device", "cuda"]) == 2
     assert "sees no CUDA device" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_the_log_depth_term_costs_a_relative_error_the_same_at_every_distance():
+    """`--depth-loss log`: a render 20 % too near costs as much at 2 baselines as at 50 (a slow
+    camera's scene), where the inverse-depth term gives the far scene almost nothing."""
+    from types import SimpleNamespace
+
+    from c4g.train import loss_terms
+
+    def depth_term(truth: float, kind: str) -> float:
+        size = 32  # at least the 1024 surface points the Chamfer terms draw
+        sample = SimpleNamespace(
+            frames=np.zeros((1, size, size, 3), np.float32),
+            dynamic=np.zeros((1, size, size), bool),
+            depth=np.full((1, size, size), truth, np.float32),
+            world_to_camera=np.eye(4)[None],
+        )
+        out = {"rgb": torch.zeros(1, size, size, 3), "alpha": torch.ones(1, size, size), "expected_depth": torch.full((1, size, size), 0.8 * truth)}
+        gaussians = (torch.zeros(1, 4, 3), None, None, None, torch.zeros(1, 4, 3))
+        return float(loss_terms(out, gaussians, sample, np.array([0]), 0.0, np.random.default_rng(0), kind)["depth"])
+
+    np.testing.assert_allclose([depth_term(2.0, "log"), depth_term(50.0, "log")], -np.log(0.8), rtol=1e-5)
+    assert depth_term(50.0, "inverse") < depth_term(2.0, "inverse") / 20
