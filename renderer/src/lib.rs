@@ -8,7 +8,8 @@
 //! Nothing here knows about models, ONNX or networks.
 
 /// Camera recovery by photometric alignment: a render's analytic camera Jacobian and the
-/// coarse-to-fine Levenberg–Marquardt that finds the camera matching a frame, with a confidence.
+/// coarse-to-fine Levenberg–Marquardt that finds the camera matching a frame, with a confidence;
+/// and given cameras' translations fitted to the model's depth scale.
 pub mod align;
 /// Pinhole cameras: intrinsics, world-to-camera poses, OpenCV axes.
 mod camera;

@@ -16,6 +16,7 @@
 //! | `quality` | the speed/accuracy presets (exact, balanced, fast) and pruning as clients ask for it |
 //! | `pruning` | which Gaussians a pruned request keeps: each clip's scene analysis, cached |
 //! | `streaming` | streams of sets over a time range, planned once, decoded ahead of the reader |
+//! | `camera_scale` | given cameras fitted to the model's depth scale at upload |
 //! | `recovery` | recovered cameras: each context frame's camera by photometric alignment of the model's Gaussians |
 //! | `tracking` | point tracks: query points followed through a clip by the Gaussians that explain them, or by matching their lifted features |
 //! | `features` | the 4D feature field: decodes with lifted features, feature images (raw, and a per-clip PCA colouring), segments |
@@ -44,6 +45,7 @@ mod auth;
 mod batching;
 pub mod body_deadline;
 mod camera;
+mod camera_scale;
 pub mod config;
 mod error;
 mod exports;

@@ -217,6 +217,7 @@ impl Service {
                      the model's units, the first context camera the identity"
                         .to_owned(),
                 ],
+                scale_fit: None,
             },
             fits,
             options,

@@ -196,7 +196,7 @@ impl Service {
         let service = self.clone();
         let source = intake.source.clone();
         let frame_step = intake.frame_step;
-        let (encoding, frames) = tokio::task::spawn_blocking(move || {
+        let (encoding, frames, cameras) = tokio::task::spawn_blocking(move || {
             // Held by the encode itself: one whose client left still runs, and still counts.
             let _slot = slot;
             let started = Instant::now();
@@ -217,21 +217,26 @@ impl Service {
                 .with_frame_step(frame_step)?;
             metrics::histogram!("c4g_encode_duration_seconds")
                 .record(started.elapsed().as_secs_f64());
-            let frames = intake.frames.into_iter().map(|f| f.image).collect();
-            Ok::<_, ServiceError>((encoding, frames))
+            let frames: Vec<_> = intake.frames.into_iter().map(|f| f.image).collect();
+            let cameras = cameras
+                .map(|parsed| {
+                    // The encoding's order is time order; `frame_order` says which intake frame
+                    // each is.
+                    let given: Vec<_> = encoding
+                        .frame_order()
+                        .iter()
+                        .map(|&k| parsed.cameras[sources[k]])
+                        .collect();
+                    let cameras =
+                        ClipCameras::new(&given, encoding.times(), parsed.format, parsed.notes);
+                    service.fit_camera_scale(cameras, &encoding, &frames)
+                })
+                .transpose()?;
+            Ok::<_, ServiceError>((encoding, frames, cameras))
         })
         .await
         .map_err(|e| ServiceError::Internal(format!("encoding panicked: {e}")))??;
         tracing::info!(clip = %id, frames = encoding.frame_count(), "clip encoded");
-        let cameras = cameras.map(|parsed| {
-            // The encoding's order is time order; `frame_order` says which intake frame each is.
-            let given: Vec<_> = encoding
-                .frame_order()
-                .iter()
-                .map(|&k| parsed.cameras[sources[k]])
-                .collect();
-            ClipCameras::new(&given, encoding.times(), parsed.format, parsed.notes)
-        });
         Ok(NewClip {
             record: ClipRecord {
                 id,

@@ -7,7 +7,11 @@ declared time policy), on clips of two procedural worlds: `train-world` (`c4g.sy
 split: the generator c4g-tiny was trained on, other seeds) and `eval-world` (`c4g.eval_world`:
 written separately, never trained on). Protocol per clip, at 64 x 64 and 10 fps, for each stride s:
 4 context frames s source frames apart (0, s, 2s, 3s), targets half-way between neighbours:
-- interpolated times: the model's render at the target's true camera, against the true frame;
+- interpolated times: the model's render at the target's true camera, against the true frame.
+  The true cameras are what the service calls given cameras, and the service fits their scale to
+  the model's depth scale from the context frames alone (`fit_camera_scale`, the mirror of
+  `c4g_renderer::align::fit_translation_scale`): *model* renders at cameras so fitted, *model,
+  unfitted* at the convention's (first-to-last context camera distance 1) as they are;
 - novel views: the same times from a camera moved off the path (`c4g.evaluate`'s NOVEL_OFFSET
   and NOVEL_YAW, in the model's units), against the scene rendered there;
 - baselines: the mean colour of the context frames, the nearest context frame (the earlier of
@@ -19,8 +23,9 @@ written separately, never trained on). Protocol per clip, at 64 x 64 and 10 fps,
   context frames it was given (*reconstructed*), against them: what it keeps of its input;
   the model's Gaussians at the *true depth scale* (scaled about the first camera, which leaves
   that camera's image as it is, so their median depth is the first frame's true median depth):
-  what its geometry costs it beyond the scale. The scale is printed too (`depth ratio`: the
-  model's median depth over the truth's, geometric mean and range over the clips).
+  what its geometry costs it beyond the scale (the model's Gaussians unfitted). The scale is
+  printed too (`depth ratio`: the model's median depth over the truth's, geometric mean and range
+  over the clips, as predicted and after the fit).
 Inputs and truths are quantised to 8 bits first, as the service sees them; PSNR from
 `metrics_reference`. Prints a Markdown table of mean PSNR (with the clip count) and writes
 `generalisation.json` to `--out` when given.
@@ -44,8 +49,50 @@ from .time_policy import normalise_batch
 from .train import QUERY_GRID
 
 WORLDS = ("train-world", "eval-world")
-METHODS = ("model", "mean colour", "nearest context frame", "blend of neighbours")
+METHODS = ("model", "model, unfitted", "mean colour", "nearest context frame", "blend of neighbours")
 CEILINGS = ("true frame in query blocks", "true frame in patches", "model, reconstructed", "model at the true depth scale")
+# The model's median depth over the truth's (first frame), as it predicts it and after the fit.
+RATIOS = ("depth ratio", "depth ratio, fitted")
+
+
+# The scale search, as the service's: camera-translation factors 2^(k/4) for k in this range, then
+# a golden-section search on log2 of the factor between the best one's neighbours.
+SCALE_STEPS = range(-24, 25)
+SCALE_REFINEMENTS = 12
+# A best factor that lowers the error by less than this fraction of factor 1's is no evidence:
+# the cameras then keep the convention's scale (a clip with no parallax fits every factor).
+SCALE_EVIDENCE = 1e-3
+
+
+def fit_camera_scale(gaussians: np.ndarray, w2c: np.ndarray, frames: np.ndarray, size: int) -> float:
+    """The factor on every camera's translation (camera centres scaled about the first camera's)
+    that best matches Gaussians [V, N, 14], each decoded at its view's time, rendered at poses
+    [V, 4, 4] against frames [V, H, W, 3]: least mean squared error. Multiplying the given cameras'
+    translations by it is dividing the Gaussians' positions and sizes by it."""
+
+    def cost(log2_factor: float) -> float:
+        poses = w2c.copy()
+        poses[:, :3, 3] *= 2.0**log2_factor
+        return float(np.mean((render_gaussians(torch.from_numpy(gaussians), poses, size) - frames) ** 2))
+
+    tried = {k / 4: cost(k / 4) for k in SCALE_STEPS}
+    best = min(tried, key=tried.get)
+    lo, hi = max(best - 0.25, SCALE_STEPS[0] / 4), min(best + 0.25, SCALE_STEPS[-1] / 4)
+    golden = (np.sqrt(5) - 1) / 2
+    a, b = hi - golden * (hi - lo), lo + golden * (hi - lo)
+    fa, fb = cost(a), cost(b)
+    for _ in range(SCALE_REFINEMENTS):
+        if fa <= fb:
+            hi, b, fb = b, a, fa
+            a = hi - golden * (hi - lo)
+            fa = cost(a)
+        else:
+            lo, a, fa = a, b, fb
+            b = lo + golden * (hi - lo)
+            fb = cost(b)
+        tried[a], tried[b] = fa, fb
+    best = min(tried, key=tried.get)
+    return 1.0 if tried[best] >= tried[0.0] * (1 - SCALE_EVIDENCE) else float(2.0**best)
 
 
 class Package:
@@ -117,14 +164,20 @@ def score_clip(package: Package, world: str, index: int, stride: int) -> dict:
     gaussians = package.gaussians(frames_u8[context], times[context].tolist(), times[views].tolist(), 1.0 / synthetic.FPS)
     with torch.no_grad():
         rendered = render_gaussians(torch.from_numpy(gaussians), w2c[views], size)
-        novel = render_gaussians(torch.from_numpy(gaussians[: len(targets)]), novel_model, size)
+        unfitted_novel = render_gaussians(torch.from_numpy(gaussians[: len(targets)]), novel_model, size)
+        # The first context camera is the model's frame at any scale: the others carry the fit.
+        factor = fit_camera_scale(gaussians[len(targets) + 1 :], w2c[context[1:]], frames[context[1:]], size)
+        fitted = gaussians[: len(targets)].copy()
+        fitted[..., 0:6] /= factor
+        interp = render_gaussians(torch.from_numpy(fitted), w2c[targets], size)
+        novel = render_gaussians(torch.from_numpy(fitted), novel_model, size)
         # Scaling every position and size about the first camera's centre leaves its image as it
         # is and scales the parallax every other camera sees.
         ratio = float(np.median(gaussians[: len(targets), :, 2]) / np.median(depth[0][depth[0] > 0] * scale))
         rescaled = gaussians[: len(targets)].copy()
         rescaled[..., 0:6] /= ratio
         at_true_scale = render_gaussians(torch.from_numpy(rescaled), w2c[targets], size)
-    interp, reconstructed = rendered[: len(targets)], rendered[len(targets) :]
+    unfitted, reconstructed = rendered[: len(targets)], rendered[len(targets) :]
     mean_colour = np.broadcast_to(frames[context].mean(axis=(0, 1, 2)), frames[0].shape)
     before = [frames[t - stride // 2] for t in targets]
     blend = [(frames[t - stride // 2] + frames[t + stride // 2]) / 2 for t in targets]
@@ -132,6 +185,7 @@ def score_clip(package: Package, world: str, index: int, stride: int) -> dict:
     in_blocks = lambda images, r, c: [block_mean(i, r, c) for i in images]  # noqa: E731
     methods = {
         "model": (interp, novel),
+        "model, unfitted": (unfitted, unfitted_novel),
         "mean colour": ([mean_colour] * len(targets),) * 2,
         "nearest context frame": (before,) * 2,
         "blend of neighbours": (blend,) * 2,
@@ -148,6 +202,7 @@ def score_clip(package: Package, world: str, index: int, stride: int) -> dict:
     scores["model, reconstructed"] = {"interpolated": float(np.mean([psnr(r, frames[c]) for r, c in zip(reconstructed, context)])), "novel": None}
     scores["model at the true depth scale"] = {"interpolated": float(np.mean([psnr(a, frames[t]) for a, t in zip(at_true_scale, targets)])), "novel": None}
     scores["depth ratio"] = ratio
+    scores["depth ratio, fitted"] = ratio / factor
     return scores
 
 
@@ -187,16 +242,16 @@ def main(argv: list[str] | None = None) -> int:
                 name: {view: None if clips[0][name][view] is None else float(np.mean([c[name][view] for c in clips])) for view in ("interpolated", "novel")}
                 for name in (*METHODS, *CEILINGS)
             }
-            ratios = np.log([c["depth ratio"] for c in clips])
-            results[f"{world}, stride {stride}"]["depth ratio"] = {"geometric mean": float(np.exp(ratios.mean())), "min": float(np.exp(ratios.min())), "max": float(np.exp(ratios.max()))}
+            for name in RATIOS:
+                ratios = np.log([c[name] for c in clips])
+                results[f"{world}, stride {stride}"][name] = {"geometric mean": float(np.exp(ratios.mean())), "min": float(np.exp(ratios.min())), "max": float(np.exp(ratios.max()))}
             print(f"{world}, stride {stride}: done", file=sys.stderr, flush=True)
     print_table(package, args, "mean PSNR (dB)", results, METHODS, 2)
     print("\nCeilings (oracles that see the true frame) and the model's render of its own context frames (at their cameras):\n")
     print_table(package, args, "mean PSNR (dB)", results, CEILINGS, 2)
-    print("\nDepth ratio (the model's median depth over the truth's, first frame; geometric mean [min, max]):\n")
+    print("\nDepth ratio (the model's median depth over the truth's, first frame; geometric mean [min, max]), as predicted and after the camera scale fit:\n")
     for key, scores in results.items():
-        r = scores["depth ratio"]
-        print(f"- {key}: {r['geometric mean']:.2f} [{r['min']:.2f}, {r['max']:.2f}]")
+        print(f"- {key}: " + "; ".join(f"{scores[n]['geometric mean']:.2f} [{scores[n]['min']:.2f}, {scores[n]['max']:.2f}]" for n in RATIOS))
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "generalisation.json").write_text(json.dumps({"package": str(args.package), "clips": args.clips, "results": results}, indent=1))

@@ -1,6 +1,8 @@
 //! Camera recovery by photometric alignment: given a Gaussian set (the model's own, decoded at a
 //! context frame's time), the frame, and a camera to start from (the previous frame's), find the
-//! camera whose render of the set matches the frame, with a confidence in the answer.
+//! camera whose render of the set matches the frame, with a confidence in the answer. And for
+//! cameras that are given, not recovered: the one factor on their translations that puts them at
+//! the model's depth scale ([`fit_translation_scale`], `scale.rs`).
 //!
 //! [`align_camera`] is Levenberg–Marquardt on 6 numbers (a left-multiplied se(3) change of
 //! world-to-camera), or 7 with a shared focal scale, over a coarse-to-fine pyramid of the frame
@@ -44,6 +46,7 @@ mod confidence;
 mod jacobian;
 mod normal;
 mod pyramid;
+mod scale;
 mod splat;
 #[cfg(test)]
 mod tests;
@@ -51,6 +54,7 @@ mod tests;
 pub use adjustment::{CAMERA_PARAMETER_NAMES, CAMERA_PARAMETERS, CameraAdjustment};
 pub use confidence::{CONDITIONING_HALF, FIT_SCALE, FULL_COVERAGE};
 pub use jacobian::{CameraJacobian, camera_jacobian};
+pub use scale::{EVIDENCE, REFINEMENTS, STEPS, ScaleFit, ScaleView, fit_translation_scale};
 
 use crate::raster::RenderOptions;
 use crate::{Camera, GaussianSet, RendererError};

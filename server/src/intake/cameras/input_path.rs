@@ -95,6 +95,7 @@ mod tests {
             scale: 1.0,
             frames,
             notes: Vec::new(),
+            scale_fit: None,
         }
     }
 

@@ -26,7 +26,7 @@ use sha2::{Digest, Sha256};
 
 use crate::ServiceError;
 pub use input_path::{InputCamera, input_camera};
-pub use model_frame::{ClipCameras, ContextCamera};
+pub use model_frame::{ClipCameras, ContextCamera, ScaleFit};
 pub use pose::{GivenCamera, Intrinsics};
 
 /// Cameras as the client sent them: the text of one of the three forms.

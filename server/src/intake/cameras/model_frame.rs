@@ -22,13 +22,33 @@ pub struct ClipCameras {
     /// The form they came in: `json`, `colmap` or `transforms`.
     pub format: String,
     /// Given units per model unit: every translation was divided by it (the largest distance of
-    /// a context camera from the first; 1 when the context cameras do not move).
+    /// a context camera from the first, 1 when the context cameras do not move; over
+    /// `scale_fit`'s factor when fitted).
     pub scale: f64,
     /// One per context frame, in time order (as `context_times`).
     pub frames: Vec<ContextCamera>,
     /// What was ignored or assumed reading them.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub notes: Vec<String>,
+    /// How the translations were fitted to the model's depth scale (`camera_scale.rs`): absent
+    /// when they were not (cameras that do not move, recovered cameras, clips stored before).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scale_fit: Option<ScaleFit>,
+}
+
+/// Given cameras fitted to the model's depth scale: every translation multiplied by `factor`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ScaleFit {
+    /// What the convention's translations were multiplied by (1: the convention's scale stood).
+    pub factor: f64,
+    /// Given units per model unit by the convention alone (the largest distance of a context
+    /// camera from the first).
+    pub convention_scale: f64,
+    /// Mean squared RGB error of the model's renders of the later context frames at their
+    /// cameras, at the convention's scale.
+    pub initial_error: f64,
+    /// The same at the fitted scale.
+    pub error: f64,
 }
 
 /// A context frame's camera in the model's frame.
@@ -51,6 +71,7 @@ impl ClipCameras {
                 scale: 1.0,
                 frames: Vec::new(),
                 notes,
+                scale_fit: None,
             };
         };
         let c0 = first.centre();
@@ -87,7 +108,29 @@ impl ClipCameras {
             scale,
             frames,
             notes,
+            scale_fit: None,
         }
+    }
+
+    /// Whether any context camera is away from the first (only then does a scale matter).
+    pub fn moves(&self) -> bool {
+        self.frames.iter().any(|f| f.pose().1 != DVec3::ZERO)
+    }
+
+    /// These cameras with every translation multiplied by `fit.factor`, `fit` recorded.
+    pub fn fitted(mut self, fit: ScaleFit) -> Self {
+        for frame in &mut self.frames {
+            let (rotation, translation) = frame.pose();
+            frame.world_to_camera = row_major(&rotation, translation * fit.factor);
+        }
+        self.scale /= fit.factor;
+        self.notes.push(format!(
+            "translations fitted to the model's depth scale: x{:.4} of the convention's \
+             (the model's renders of the context frames: mean squared error {:.5} -> {:.5})",
+            fit.factor, fit.initial_error, fit.error
+        ));
+        self.scale_fit = Some(fit);
+        self
     }
 }
 

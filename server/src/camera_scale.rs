@@ -1,0 +1,94 @@
+//! Given cameras at the model's depth scale, fitted once at upload.
+//!
+//! Given cameras are mapped into the model's frame by C4G's convention (translations divided by
+//! the largest distance of a context camera from the first), which is the scale the model was
+//! trained to predict but not necessarily the one it predicts: a model that misjudges the depth
+//! draws each later context frame's Gaussians where that frame's camera does not see them, and
+//! every render at the input camera is off by the same amount (c4g-tiny puts every scene at
+//! about one depth; on the evaluation-only world the fit is worth 1-2 dB at interpolated times:
+//! `models/c4g-tiny/README.md`). So after the encode, the Gaussians decoded at the later context
+//! frames' times are rendered at their given cameras, and the one factor on the translations
+//! that best matches the frames as the model saw them is kept with the cameras
+//! (`c4g_renderer::align::fit_translation_scale`; `ClipCameras::scale_fit`). Decoded Gaussians,
+//! exports and stated cameras are untouched: only the given cameras move to the model's scale.
+//!
+//! The fit is deterministic (the same upload gives the same clip record, as content addressing
+//! needs) and costs about 60 renders of each later context frame at the model's input size.
+
+use c4g_engine::Encoding;
+use c4g_engine::preprocess::crop_and_resize;
+use c4g_renderer::align::{ScaleView, fit_translation_scale};
+use c4g_renderer::{Camera, NormalizedIntrinsics, RenderOptions};
+use glam::Affine3A;
+use image::RgbImage;
+
+use crate::ServiceError;
+use crate::intake::cameras::{ClipCameras, ScaleFit};
+use crate::service::Service;
+
+impl Service {
+    /// `cameras` (one per context frame, in the encoding's order) fitted to the model's depth
+    /// scale; as they are when no context camera moves. `frames` are the intake's frames, which
+    /// the encoding's `frame_order` indexes.
+    pub(crate) fn fit_camera_scale(
+        &self,
+        cameras: ClipCameras,
+        encoding: &Encoding,
+        frames: &[RgbImage],
+    ) -> Result<ClipCameras, ServiceError> {
+        if !cameras.moves() {
+            return Ok(cameras);
+        }
+        let input = &self.engine.manifest().input;
+        let (w, h) = (input.width, input.height);
+        // The first context camera is the model's frame at any scale: the later ones carry it.
+        let later = 1..cameras.frames.len();
+        let times: Vec<f64> = cameras.frames[later.clone()].iter().map(|f| f.t).collect();
+        let sets = self.decode_now(encoding, &times)?;
+        let mut targets = Vec::with_capacity(times.len());
+        let mut poses = Vec::with_capacity(times.len());
+        for k in later {
+            let image = &frames[encoding.frame_order()[k]];
+            let seen = crop_and_resize(image, w, h)?;
+            targets.push(
+                seen.into_raw()
+                    .into_iter()
+                    .map(|v| f32::from(v) / 255.0)
+                    .collect::<Vec<f32>>(),
+            );
+            let frame = &cameras.frames[k];
+            let (rotation, translation) = frame.pose();
+            let i = frame.intrinsics;
+            let intrinsics = NormalizedIntrinsics {
+                fx: i.fx as f32,
+                fy: i.fy as f32,
+                cx: i.cx as f32,
+                cy: i.cy as f32,
+            };
+            let pose = Affine3A::from_mat3_translation(rotation.as_mat3(), translation.as_vec3());
+            poses.push(Camera::from_normalized(intrinsics, w, h, pose)?);
+        }
+        let views: Vec<ScaleView<'_>> = sets
+            .iter()
+            .zip(&targets)
+            .zip(poses)
+            .map(|(((_, set), target), camera)| ScaleView {
+                set,
+                target,
+                camera,
+            })
+            .collect();
+        let options = RenderOptions {
+            footprint: self.renderer.footprint(),
+            ..RenderOptions::default()
+        };
+        let fit = fit_translation_scale(&views, &options)?;
+        let convention_scale = cameras.scale;
+        Ok(cameras.fitted(ScaleFit {
+            factor: fit.factor,
+            convention_scale,
+            initial_error: fit.initial_error,
+            error: fit.error,
+        }))
+    }
+}
