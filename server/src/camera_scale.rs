@@ -78,8 +78,10 @@ impl Service {
                 camera,
             })
             .collect();
+        // The package's footprint, not the server's `--footprint`: the stored record must be a
+        // function of the model and the upload alone (the clip's id is).
         let options = RenderOptions {
-            footprint: self.renderer.footprint(),
+            footprint: self.engine.manifest().footprint(),
             ..RenderOptions::default()
         };
         let fit = fit_translation_scale(&views, &options)?;

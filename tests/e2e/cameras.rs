@@ -7,8 +7,11 @@
 //! fitted to the model's depth scale, and held-out views match better for it.
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
+use std::path::PathBuf;
+
 use c4g_e2e::{
-    Server, binary, expect_invalid, frames_form, json_of, ort_available, synthetic_clip,
+    Server, binary, expect_invalid, frames_form, json_of, ort_available, post_upload,
+    synthetic_clip,
 };
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
@@ -276,6 +279,14 @@ fn moving_cameras() -> String {
     format!("[{}]", list.join(","))
 }
 
+/// Uploads `frames` at `times` with a JSON list of cameras, 4 context frames; the clip's JSON.
+fn upload_with_cameras(server: &Server, frames: &[PathBuf], times: &[f64], cameras: &str) -> Value {
+    let form = frames_form(frames, times)
+        .text("max_frames", "4")
+        .text("cameras", cameras.to_owned());
+    json_of(post_upload(server, form))
+}
+
 fn pixels(png: &[u8]) -> Vec<u8> {
     image::load_from_memory(png).unwrap().to_rgb8().into_raw()
 }
@@ -309,16 +320,7 @@ fn renders_follow_the_input_camera_path_in_views_bullet_time_and_new_times() {
     }
     let server = Server::start(&[]);
     let (frames, times) = synthetic_clip();
-    let form = frames_form(&frames, &times)
-        .text("max_frames", "4")
-        .text("cameras", moving_cameras());
-    let clip = json_of(
-        Client::new()
-            .post(server.at("/v1/clips"))
-            .multipart(form)
-            .send()
-            .unwrap(),
-    );
+    let clip = upload_with_cameras(&server, &frames, &times, &moving_cameras());
     let id = clip["id"].as_str().unwrap().to_owned();
     let stored = clip["cameras"]["frames"].as_array().unwrap().clone();
     let render = |body: Value| {
@@ -577,16 +579,7 @@ fn given_cameras_are_fitted_to_the_model_depth_scale_and_held_out_views_match_be
         let times: Vec<f64> = (0..11).map(|i| f64::from(i) / 10.0).collect();
         let cameras: Value =
             serde_json::from_slice(&std::fs::read(dir.join("cameras.json")).unwrap()).unwrap();
-        let form = frames_form(&frames, &times)
-            .text("max_frames", "4")
-            .text("cameras", cameras.to_string());
-        let clip = json_of(
-            Client::new()
-                .post(server.at("/v1/clips"))
-                .multipart(form)
-                .send()
-                .unwrap(),
-        );
+        let clip = upload_with_cameras(&server, &frames, &times, &cameras.to_string());
         let stored = &clip["cameras"];
         let fit = &stored["scale_fit"];
         let number = |v: &Value| v.as_f64().unwrap();

@@ -10,7 +10,8 @@
 use std::path::PathBuf;
 
 use c4g_e2e::{
-    Server, binary, expect_invalid, frames_form, json_of, ort_available, post_json, workspace,
+    Server, binary, expect_invalid, frames_form, json_of, ort_available, post_json, post_upload,
+    workspace,
 };
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
@@ -37,13 +38,7 @@ fn upload(server: &Server, cameras: Option<&Value>) -> Value {
     if let Some(cameras) = cameras {
         form = form.text("cameras", cameras.to_string());
     }
-    json_of(
-        Client::new()
-            .post(server.at("/v1/clips"))
-            .multipart(form)
-            .send()
-            .unwrap(),
-    )
+    json_of(post_upload(server, form))
 }
 
 fn render(server: &Server, id: &str, t: f64, camera: Value) -> Vec<u8> {

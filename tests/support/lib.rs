@@ -299,14 +299,22 @@ pub fn burst(server: &Server, requests: &[(String, serde_json::Value)]) -> Burst
     }
 }
 
+/// POSTs an upload form to `/v1/clips`: the response.
+pub fn post_upload(
+    server: &Server,
+    form: reqwest::blocking::multipart::Form,
+) -> reqwest::blocking::Response {
+    reqwest::blocking::Client::new()
+        .post(server.at("/v1/clips"))
+        .multipart(form)
+        .send()
+        .unwrap()
+}
+
 /// Uploads the synthetic test clip and gives its id.
 pub fn upload_synthetic(server: &Server) -> String {
     let (frames, times) = synthetic_clip();
-    let response = reqwest::blocking::Client::new()
-        .post(server.at("/v1/clips"))
-        .multipart(frames_form(&frames, &times))
-        .send()
-        .unwrap();
+    let response = post_upload(server, frames_form(&frames, &times));
     assert!(response.status().is_success());
     response.json::<serde_json::Value>().unwrap()["id"]
         .as_str()
