@@ -7,8 +7,9 @@ it takes each context frame's per-patch object-id fractions and gives every Gaus
 feature, which composited at a camera and taken by its largest channel is an object-id mask. This
 runs it as the service runs a package (its ONNX graphs on ONNX Runtime's CPU provider, its declared
 time policy) on the clips of `c4g.generalisation` (the same worlds, seeds, strides, context frames,
-targets and novel cameras), and scores each target's mask against the true one (`render_object_ids`
-of the world's generator at that time and camera): IoU per object (the stage, id 0, is left out:
+targets and novel cameras, the cameras fitted to the model's depth scale as the service fits given
+cameras: `c4g.generalisation.fit_camera_scale`), and scores each target's mask against the true one
+(`render_object_ids` of the world's generator at that time and camera): IoU per object (the stage, id 0, is left out:
 it is everything else), averaged over the objects in either mask, then over targets and clips.
 The 2D baseline beside it: the nearest context frame's true mask (the earlier of two equidistant
 ones), held as it is at novel views, as the colour baselines are.
@@ -28,7 +29,7 @@ import torch.nn.functional as F
 
 from . import eval_world, synthetic
 from .evaluate import novel_pose, novel_world_poses, quantise
-from .generalisation import Package, print_table, protocol_arguments, world_clip
+from .generalisation import Package, fit_camera_scale, print_table, protocol_arguments, world_clip
 from .render_torch import render
 from .time_policy import normalise_batch
 from .train import INTRINSICS_NORMALISED, split_canonical
@@ -101,7 +102,13 @@ def score_clip(package: ObjectPackage, world: str, index: int, stride: int) -> d
     w2c, scale = synthetic.normalise_to_first_camera(w2c_world, int(context[0]), int(context[-1]), float(np.median(first[first > 0])))
     novel_model = np.stack([novel_pose(w2c[i]) for i in targets])
     novel_truth = world_ids(world, index, times[targets], size, novel_world_poses(novel_model, w2c_world[0], scale))
-    gaussians, lifted = package.lifted(quantise(frames_f)[context], ids[context], times[context].tolist(), times[targets].tolist(), 1.0 / synthetic.FPS)
+    frames_u8 = quantise(frames_f)
+    gaussians, lifted = package.lifted(frames_u8[context], ids[context], times[context].tolist(), times[targets].tolist(), 1.0 / synthetic.FPS)
+    # The true cameras are given cameras: fitted to the model's depth scale as the service fits them.
+    later = package.gaussians(frames_u8[context], times[context].tolist(), times[context[1:]].tolist(), 1.0 / synthetic.FPS)
+    factor = fit_camera_scale(later, w2c[context[1:]], frames_u8[context[1:]].astype(np.float32) / 255.0, size)
+    gaussians = gaussians.copy()
+    gaussians[..., 0:6] /= factor
     interp, novel = masks(gaussians, lifted, w2c[targets], size), masks(gaussians, lifted, novel_model, size)
     nearest = [ids[t - stride // 2] for t in targets]
     scores: dict[str, dict[str, list[float]]] = {m: {"interpolated": [], "novel": []} for m in METHODS}
