@@ -23,6 +23,7 @@
 //! scores it on two procedural worlds.
 
 use glam::Affine3A;
+use rayon::prelude::*;
 
 use crate::raster::{Rasterizer, RenderOptions};
 use crate::{Camera, CpuRasterizer, GaussianSet, RendererError};
@@ -88,8 +89,7 @@ pub fn fit_translation_scale(
         features: false,
         ..options.clone()
     };
-    let mut evaluations = 0;
-    let mut cost = |log2: f64| -> Result<f64, RendererError> {
+    let cost = |log2: f64| -> Result<f64, RendererError> {
         let factor = log2.exp2() as f32;
         let (mut sum, mut count) = (0.0_f64, 0_usize);
         for view in views {
@@ -100,7 +100,6 @@ pub fn fit_translation_scale(
             );
             let camera = Camera::new(*view.camera.intrinsics(), scaled)?;
             let image = rasterizer.render(view.set, &camera, &options)?;
-            evaluations += 1;
             sum += image
                 .rgb
                 .iter()
@@ -112,11 +111,15 @@ pub fn fit_translation_scale(
         Ok(if count == 0 { 0.0 } else { sum / count as f64 })
     };
 
-    let mut tried: Vec<(f64, f64)> = Vec::new();
-    for k in STEPS {
-        let log2 = f64::from(k) / 4.0;
-        tried.push((log2, cost(log2)?));
-    }
+    // The grid's factors are independent: evaluated in parallel (a 64² render alone keeps few
+    // of the pool's threads busy), each the same number whichever thread computes it.
+    let mut tried: Vec<(f64, f64)> = STEPS
+        .into_par_iter()
+        .map(|k| {
+            let log2 = f64::from(k) / 4.0;
+            cost(log2).map(|c| (log2, c))
+        })
+        .collect::<Result<_, _>>()?;
     let best = |tried: &[(f64, f64)]| {
         tried
             .iter()
@@ -161,6 +164,6 @@ pub fn fit_translation_scale(
         factor,
         initial_error,
         error,
-        evaluations,
+        evaluations: tried.len() * views.len(),
     })
 }
