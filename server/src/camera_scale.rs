@@ -5,24 +5,24 @@
 //! trained to predict but not necessarily the one it predicts: a model that misjudges the depth
 //! draws each later context frame's Gaussians where that frame's camera does not see them, and
 //! every render at the input camera is off by the same amount (c4g-tiny puts every scene at
-//! about one depth; on the evaluation-only world the fit is worth 1-2 dB at interpolated times:
-//! `models/c4g-tiny/README.md`). So after the encode, the Gaussians decoded at the later context
+//! about one depth; on the evaluation-only world the fit is worth 0.9-1.4 dB at interpolated
+//! times: `models/c4g-tiny/README.md`). So after the encode, the Gaussians decoded at the later context
 //! frames' times are rendered at their given cameras, and the one factor on the translations
 //! that best matches the frames as the model saw them is kept with the cameras
 //! (`c4g_renderer::align::fit_translation_scale`; `ClipCameras::scale_fit`). Decoded Gaussians,
 //! exports and stated cameras are untouched: only the given cameras move to the model's scale.
 //!
 //! The fit is deterministic (the same upload gives the same clip record, as content addressing
-//! needs) and costs about 60 renders of each later context frame at the model's input size.
+//! needs) and costs 63 renders of each later context frame at the model's input size (49 grid
+//! factors, 14 golden-section ones).
 
 use c4g_engine::Encoding;
-use c4g_engine::preprocess::crop_and_resize;
+use c4g_renderer::RenderOptions;
 use c4g_renderer::align::{ScaleView, fit_translation_scale};
-use c4g_renderer::{Camera, NormalizedIntrinsics, RenderOptions};
-use glam::Affine3A;
 use image::RgbImage;
 
 use crate::ServiceError;
+use crate::camera::{CameraSpec, InputSpec};
 use crate::intake::cameras::{ClipCameras, ScaleFit};
 use crate::service::Service;
 
@@ -48,25 +48,17 @@ impl Service {
         let mut targets = Vec::with_capacity(times.len());
         let mut poses = Vec::with_capacity(times.len());
         for k in later {
-            let image = &frames[encoding.frame_order()[k]];
-            let seen = crop_and_resize(image, w, h)?;
-            targets.push(
-                seen.into_raw()
-                    .into_iter()
-                    .map(|v| f32::from(v) / 255.0)
-                    .collect::<Vec<f32>>(),
-            );
-            let frame = &cameras.frames[k];
-            let (rotation, translation) = frame.pose();
-            let i = frame.intrinsics;
-            let intrinsics = NormalizedIntrinsics {
-                fx: i.fx as f32,
-                fy: i.fy as f32,
-                cx: i.cx as f32,
-                cy: i.cy as f32,
+            targets.push(self.seen_by_model(&frames[encoding.frame_order()[k]])?);
+            // The camera exactly as renders at the input camera will take it.
+            let t = cameras.frames[k].t;
+            let input = CameraSpec {
+                input: Some(InputSpec {
+                    at: Some(t),
+                    ..InputSpec::default()
+                }),
+                ..CameraSpec::default()
             };
-            let pose = Affine3A::from_mat3_translation(rotation.as_mat3(), translation.as_vec3());
-            poses.push(Camera::from_normalized(intrinsics, w, h, pose)?);
+            poses.push(input.resolve(Some(&cameras), t, None)?.camera(w, h)?);
         }
         let views: Vec<ScaleView<'_>> = sets
             .iter()

@@ -25,6 +25,7 @@ use std::sync::Arc;
 use c4g_engine::preprocess::{crop_and_resize, decode_frame};
 use c4g_renderer::{AlignOptions, Alignment, Camera, GaussianSet, NormalizedIntrinsics};
 use glam::{Affine3A, Mat4};
+use image::RgbImage;
 use serde::{Deserialize, Serialize};
 
 use crate::ServiceError;
@@ -138,10 +139,15 @@ impl Service {
 
     /// Context frame `k` of clip `id` as the model saw it: RGB in 0..1 at its input size.
     fn model_view(&self, id: &str, k: usize) -> Result<Vec<f32>, ServiceError> {
-        let input = &self.engine.manifest().input;
         let bytes = std::fs::read(self.store.frame_path(id, k))
             .map_err(|e| ServiceError::Internal(format!("cannot read context frame {k}: {e}")))?;
-        let frame = crop_and_resize(&decode_frame(&bytes)?, input.width, input.height)?;
+        self.seen_by_model(&decode_frame(&bytes)?)
+    }
+
+    /// A frame as the model sees it (centre-cropped and resized to its input): RGB in 0..1.
+    pub(crate) fn seen_by_model(&self, frame: &RgbImage) -> Result<Vec<f32>, ServiceError> {
+        let input = &self.engine.manifest().input;
+        let frame = crop_and_resize(frame, input.width, input.height)?;
         Ok(frame
             .into_raw()
             .into_iter()

@@ -260,6 +260,11 @@ fn check_inputs(set: &GaussianSet, target: &[f32], camera: &Camera) -> Result<()
                 .to_owned(),
         });
     }
+    check_target(target, camera)
+}
+
+/// A frame to compare renders with: RGB floats at `camera`'s size, all finite.
+pub(crate) fn check_target(target: &[f32], camera: &Camera) -> Result<(), RendererError> {
     let (w, h) = (camera.width() as usize, camera.height() as usize);
     if target.len() != w * h * 3 {
         return Err(RendererError::InvalidImage(format!(

@@ -25,6 +25,7 @@
 use glam::Affine3A;
 use rayon::prelude::*;
 
+use super::check_target;
 use crate::raster::{Rasterizer, RenderOptions};
 use crate::{Camera, CpuRasterizer, GaussianSet, RendererError};
 
@@ -68,21 +69,8 @@ pub fn fit_translation_scale(
     options: &RenderOptions,
 ) -> Result<ScaleFit, RendererError> {
     options.validate()?;
-    for (k, view) in views.iter().enumerate() {
-        let pixels = view.camera.width() as usize * view.camera.height() as usize;
-        if view.target.len() != 3 * pixels {
-            return Err(RendererError::InvalidImage(format!(
-                "scale fit view {k}: {} values for a {}x{} camera (3 a pixel)",
-                view.target.len(),
-                view.camera.width(),
-                view.camera.height()
-            )));
-        }
-        if view.target.iter().any(|v| !v.is_finite()) {
-            return Err(RendererError::InvalidImage(format!(
-                "scale fit view {k}: the frame has non-finite values"
-            )));
-        }
+    for view in views {
+        check_target(view.target, &view.camera)?;
     }
     let rasterizer = CpuRasterizer::new();
     let options = RenderOptions {
