@@ -11,7 +11,7 @@ use crate::{Approximation, Client, Error, Spacing};
 /// The files an export can be.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ExportFormat {
-    /// A zip of per-time 3DGS `.ply` files (Brush plays these); `c4g_renderer::formats::frames_zip` reads it.
+    /// A zip of per-time 3DGS `.ply` files (Brush plays these); `c4g_formats::frames_zip` reads it.
     PlyZip,
     /// A zip of per-time Niantic `.spz` files.
     SpzZip,

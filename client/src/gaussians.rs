@@ -5,7 +5,7 @@ use std::fmt;
 use std::str::FromStr;
 
 use bytes::Bytes;
-use c4g_renderer::GaussianSet;
+use c4g_scene::GaussianSet;
 use reqwest::header::ACCEPT;
 use serde::{Deserialize, Serialize};
 use serde_json::json;
@@ -24,7 +24,7 @@ pub struct GaussianFrame {
 /// Float width of the values in a Gaussian payload: the renderer's `C4GS` codec's, so both ends
 /// name it alike. Half precision halves the bytes on the wire at about three decimal digits,
 /// plenty for viewing; the values arrive here as `f32` either way.
-pub use c4g_renderer::formats::c4gs::Precision;
+pub use c4g_formats::c4gs::Precision;
 
 /// The formats `POST /v1/clips/{id}/gaussians` answers in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

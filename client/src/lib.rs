@@ -27,8 +27,8 @@
 //! | [`jobs`] | [`RefineRequest`], [`Client::refine`] and [`Job`]: refinement jobs, followed as server-sent events |
 //! | [`sse`] | [`SseDecoder`]: the `text/event-stream` format, chunk by chunk |
 //!
-//! Gaussian sets arrive as [`c4g_renderer::GaussianSet`], so they write straight to `.ply` or
-//! `.splat` with [`c4g_renderer::formats`] and render with the renderer's rasterizers.
+//! Gaussian sets arrive as [`c4g_scene::GaussianSet`], so they write straight to `.ply` or
+//! `.splat` with [`c4g_formats`] and render with the renderer's rasterizers.
 
 pub mod cameras;
 pub mod client;
@@ -48,7 +48,7 @@ pub mod tracks;
 pub mod upload;
 pub mod wire;
 
-pub use c4g_renderer::GaussianSet;
+pub use c4g_scene::GaussianSet;
 pub use cameras::{FrameFit, RecoveredCameras};
 pub use client::Client;
 pub use clips::{Clip, ClipSource};

@@ -3,8 +3,8 @@
 //! gRPC rather than REST because a stream of sets is many messages with backpressure: the server
 //! decodes a bounded number ahead, and a slow reader slows it down through HTTP/2 flow control.
 
+use c4g_formats::c4gv;
 use c4g_proto::v1 as proto;
-use c4g_renderer::formats::c4gv;
 use futures_util::StreamExt;
 use futures_util::stream::BoxStream;
 
@@ -39,7 +39,7 @@ pub struct StreamOptions {
     pub compact: Option<Compact>,
 }
 
-/// A compact stream's settings (`renderer/src/formats/c4gv.rs` states every bound).
+/// A compact stream's settings (`formats/src/c4gv/mod.rs` states every bound).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Compact {
     /// Largest error of a position coordinate, scene units (1e-5 to 1).

@@ -6,9 +6,9 @@
 //! The codec checks every length against the header before reading, so a truncated or hostile
 //! payload is an [`Error::Malformed`] that says what is short, never a panic or a huge allocation.
 
+use c4g_formats::c4gs;
 use c4g_proto::v1 as proto;
-use c4g_renderer::formats::c4gs;
-use c4g_renderer::{GaussianSet, RendererError};
+use c4g_scene::{GaussianSet, SceneError};
 
 use crate::{Error, GaussianFrame, Precision};
 
@@ -75,9 +75,9 @@ pub fn proto_precision(precision: Precision) -> proto::Precision {
 }
 
 /// The codec's reason (which says what is short) as a malformed answer, after `context`.
-fn malformed(context: &str, e: RendererError) -> Error {
+fn malformed(context: &str, e: SceneError) -> Error {
     match e {
-        RendererError::Format { reason, .. } => Error::Malformed(format!("{context}{reason}")),
+        SceneError::Format { reason, .. } => Error::Malformed(format!("{context}{reason}")),
         other => Error::Malformed(format!("{context}{other}")),
     }
 }

@@ -270,7 +270,7 @@ fn the_stream_command_writes_one_ply_per_set() {
             "frame-00002-t1.000.ply"
         ]
     );
-    let set = c4g_renderer::formats::ply::read(&dir.path().join(&names[2])).unwrap();
+    let set = c4g_formats::ply::read(&dir.path().join(&names[2])).unwrap();
     assert_eq!(set.len(), 1);
     assert_eq!(set.positions()[0], [1.0, 0.0, 2.0]);
 }

@@ -1,4 +1,4 @@
-//! What the compact 4D stream (`C4GV`, `c4g_renderer::formats::c4gv`) costs and saves on real
+//! What the compact 4D stream (`C4GV`, `c4g_formats::c4gv`) costs and saves on real
 //! decoded sequences, against the naive packed frames (`C4GS`, 14 values a Gaussian).
 //!
 //!     source scripts/env.sh && cargo bench -p c4g-engine --bench c4gv
@@ -39,10 +39,11 @@ use std::process::Command;
 use std::time::Instant;
 
 use c4g_engine::{ContextFrame, Engine, EngineOptions};
-use c4g_renderer::formats::c4gs::{self, Precision};
-use c4g_renderer::formats::c4gv::{self, EncodeOptions};
-use c4g_renderer::{Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, Rasterizer};
-use c4g_renderer::{RenderOptions, metrics};
+use c4g_formats::c4gs::{self, Precision};
+use c4g_formats::c4gv::{self, EncodeOptions};
+use c4g_renderer::{CpuRasterizer, Rasterizer};
+use c4g_renderer::{RenderOptions, fidelity};
+use c4g_scene::{Camera, GaussianSet, NormalizedIntrinsics};
 use glam::Mat4;
 use serde_json::Value;
 
@@ -326,7 +327,7 @@ fn measure(clip: &Clip, bound: f64, rasterizer: &CpuRasterizer, originals: &[Vec
             .iter()
             .map(|(k, camera, truth)| {
                 let score = |set: &GaussianSet| {
-                    metrics::psnr(&render(rasterizer, set, camera), truth, SIZE, SIZE, None)
+                    fidelity::psnr(&render(rasterizer, set, camera), truth, SIZE, SIZE, None)
                         .unwrap()
                 };
                 score(&decoded[*k].1) - score(&clip.frames[*k].1)

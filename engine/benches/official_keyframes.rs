@@ -47,9 +47,8 @@ use std::time::Instant;
 
 use c4g_engine::keyframes::plan_keyframes;
 use c4g_engine::{ContextFrame, Encoding, Engine, EngineOptions, KeyframeStats, Keyframes};
-use c4g_renderer::{
-    Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, Rasterizer, RenderOptions,
-};
+use c4g_renderer::{CpuRasterizer, Rasterizer, RenderOptions};
+use c4g_scene::{Camera, GaussianSet, NormalizedIntrinsics};
 use glam::{Affine3A, Quat, Vec3};
 
 const CONTEXT_FRAMES: usize = 16;
@@ -435,10 +434,10 @@ fn motion(sets: &[GaussianSet]) -> Motion {
     }
 }
 
-fn footprint_name(footprint: c4g_renderer::raster::Footprint) -> &'static str {
+fn footprint_name(footprint: c4g_scene::Footprint) -> &'static str {
     match footprint {
-        c4g_renderer::raster::Footprint::Ellipse => "ellipse (cut at 3 sigma)",
-        c4g_renderer::raster::Footprint::Tiles3dgs => "3dgs (the original rasterizer's tiles)",
+        c4g_scene::Footprint::Ellipse => "ellipse (cut at 3 sigma)",
+        c4g_scene::Footprint::Tiles3dgs => "3dgs (the original rasterizer's tiles)",
     }
 }
 

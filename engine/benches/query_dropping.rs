@@ -36,11 +36,10 @@ use common::{load_average, machine};
 use std::fmt::Write as _;
 use std::time::Instant;
 
+use c4g_analysis::pruning::{PruneOptions, SceneAnalysis};
 use c4g_engine::{ContextFrame, Encoding, Engine, EngineOptions, QuerySubset};
-use c4g_renderer::pruning::{PruneOptions, SceneAnalysis};
-use c4g_renderer::{
-    Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, Rasterizer, RenderOptions, Trajectory,
-};
+use c4g_renderer::{CpuRasterizer, Rasterizer, RenderOptions};
+use c4g_scene::{Camera, GaussianSet, NormalizedIntrinsics, Trajectory};
 use glam::Affine3A;
 
 const TARGETS: usize = 64;

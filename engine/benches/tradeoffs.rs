@@ -58,13 +58,11 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
+use c4g_analysis::pruning::{PruneOptions, SceneAnalysis};
 use c4g_engine::{ContextFrame, Encoding, Engine, EngineOptions, KeyframeTrack, Keyframes};
-use c4g_renderer::formats::c4gs::{self, Precision as Wire};
-use c4g_renderer::pruning::{PruneOptions, SceneAnalysis};
-use c4g_renderer::{
-    Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, Rasterizer, RenderOptions,
-    Trajectory, metrics, trajectory,
-};
+use c4g_formats::c4gs::{self, Precision as Wire};
+use c4g_renderer::{CpuRasterizer, Rasterizer, RenderOptions, fidelity};
+use c4g_scene::{Camera, GaussianSet, NormalizedIntrinsics, Trajectory, trajectory};
 use glam::Mat4;
 use image::RgbImage;
 use serde_json::{Value, json};
@@ -846,10 +844,11 @@ impl Harness {
                 ] {
                     let ours = downsample(render, size);
                     let truth = to_unit(truth);
-                    let p = metrics::psnr(&ours, &truth, TRUTH_SIZE, TRUTH_SIZE, None).unwrap();
+                    let p = fidelity::psnr(&ours, &truth, TRUTH_SIZE, TRUTH_SIZE, None).unwrap();
                     psnrs.push(p);
                     clip_psnr.push(p);
-                    ssims.push(metrics::ssim(&ours, &truth, TRUTH_SIZE, TRUTH_SIZE, None).unwrap());
+                    ssims
+                        .push(fidelity::ssim(&ours, &truth, TRUTH_SIZE, TRUTH_SIZE, None).unwrap());
                 }
             }
             // Quality against exact.
@@ -867,7 +866,7 @@ impl Harness {
                     worst_frame = worst_frame.min(p);
                 }
                 if i % SSIM_STRIDE == 0 || i >= OUTPUT_FRAMES {
-                    ssim_exact.push(metrics::ssim(ours, exact, size, size, None).unwrap());
+                    ssim_exact.push(fidelity::ssim(ours, exact, size, size, None).unwrap());
                 }
             }
             per_clip.push(json!({

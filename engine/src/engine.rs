@@ -25,8 +25,8 @@ use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use c4g_renderer::{FeatureBlock, GaussianSet};
 use c4g_runtime::{ExecutionProvider, Graph, RunOutputs, RuntimeError, create_session};
+use c4g_scene::{FeatureBlock, GaussianSet};
 use image::RgbImage;
 use ort::memory::AllocationDevice;
 use ort::value::{Tensor, TensorRef};
@@ -502,9 +502,8 @@ impl Engine {
         let n = inputs.query_count(self.manifest());
         (0..inputs.batch)
             .map(|i| {
-                let invalid = |e: c4g_renderer::RendererError| {
-                    EngineError::ModelOutput(format!("target {i}: {e}"))
-                };
+                let invalid =
+                    |e: c4g_scene::SceneError| EngineError::ModelOutput(format!("target {i}: {e}"));
                 let per_set = n * GAUSSIAN_CHANNELS;
                 let mut set =
                     GaussianSet::from_canonical(&gaussians[i * per_set..(i + 1) * per_set])

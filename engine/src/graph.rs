@@ -14,7 +14,7 @@ use crate::package::{DecoderForm, Manifest};
 use crate::{EngineError, Result};
 
 /// Floats per Gaussian in the decoder's output.
-pub(crate) const GAUSSIAN_CHANNELS: usize = c4g_renderer::CANONICAL_CHANNELS;
+pub(crate) const GAUSSIAN_CHANNELS: usize = c4g_scene::CANONICAL_CHANNELS;
 
 /// One named tensor of a graph, its element type and its expected shape.
 pub(crate) struct Port {

@@ -45,7 +45,7 @@
 //! model's motion allows) the adaptive mode decodes every target plus the context times inside
 //! the range, in a few batched rounds.
 
-use c4g_renderer::{FeatureBlock, GaussianSet};
+use c4g_scene::{FeatureBlock, GaussianSet};
 
 use crate::encoding::Encoding;
 use crate::engine::Engine;
@@ -943,7 +943,7 @@ fn interpolate(
         let (ca, cb) = (a.colors()[i], b.colors()[i]);
         colors.push(std::array::from_fn(|k| lerp(ca[k], cb[k], s)));
     }
-    let invalid = |e: c4g_renderer::RendererError| EngineError::ModelOutput(e.to_string());
+    let invalid = |e: c4g_scene::SceneError| EngineError::ModelOutput(e.to_string());
     let set = GaussianSet::new(positions, scales, rotations, opacities, colors).map_err(invalid)?;
     match (a.features(), b.features()) {
         (Some(fa), Some(fb)) => {

@@ -2,7 +2,7 @@
 //!
 //! A clip's context frames are preprocessed ([`preprocess`]), encoded once ([`Engine::encode`]
 //! → [`Encoding`]), and decoded at any target time inside their span ([`Engine::decode`] →
-//! [`GaussianSet`](c4g_renderer::GaussianSet)), with timestamps normalised by a [`TimePolicy`].
+//! [`GaussianSet`](c4g_scene::GaussianSet)), with timestamps normalised by a [`TimePolicy`].
 //! A package with a feature decoder also lifts 2D feature maps onto the Gaussians
 //! ([`Engine::decode_features`]). Many times decode cheaper through [`keyframes`]: exact sets at a
 //! few keyframes, interpolated per Gaussian in between ([`Engine::decode_keyframed`]). A package

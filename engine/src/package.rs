@@ -8,7 +8,7 @@
 use std::fs;
 use std::path::{Component, Path, PathBuf};
 
-use c4g_renderer::raster::Footprint;
+use c4g_scene::Footprint;
 use serde::Deserialize;
 
 use crate::time::TimePolicy;

@@ -17,7 +17,7 @@ use c4g_engine::package::DecoderForm;
 use c4g_engine::{
     ContextFrame, Encoding, Engine, EngineError, EngineOptions, ErrorKind, TimePolicy,
 };
-use c4g_renderer::GaussianSet;
+use c4g_scene::GaussianSet;
 use common::{max_abs_diff, skip_reason, workspace};
 use safetensors::SafeTensors;
 use serde_json::Value;

@@ -8,7 +8,7 @@ mod common;
 use c4g_engine::{
     ContextFrame, Encoding, Engine, EngineError, EngineOptions, ErrorKind, TimePolicy,
 };
-use c4g_renderer::GaussianSet;
+use c4g_scene::GaussianSet;
 use common::*;
 
 const TIMES: [f64; 4] = [0.0, 2.0, 4.0, 6.0];

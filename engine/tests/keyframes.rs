@@ -9,7 +9,7 @@ use std::sync::OnceLock;
 
 use c4g_engine::keyframes::{Deviation, deviation};
 use c4g_engine::{Encoding, Engine, EngineOptions, Keyframes};
-use c4g_renderer::GaussianSet;
+use c4g_scene::GaussianSet;
 
 fn tiny() -> &'static Engine {
     static ENGINE: OnceLock<Engine> = OnceLock::new();

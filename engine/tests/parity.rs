@@ -15,7 +15,7 @@ use std::fs::File;
 
 use c4g_engine::preprocess::to_model_input;
 use c4g_engine::{ContextFrame, Encoding, TimePolicy};
-use c4g_renderer::GaussianSet;
+use c4g_scene::GaussianSet;
 use common::*;
 use ndarray::{Array1, Array2, Array3, Array4};
 use ndarray_npy::NpzReader;

@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use c4g_engine::{Engine, EngineError, EngineOptions};
-use c4g_renderer::GaussianSet;
+use c4g_scene::GaussianSet;
 
 /// The Python environment that has the converter, or `None` (allowed only outside CI).
 fn python() -> Option<PathBuf> {

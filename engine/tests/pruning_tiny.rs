@@ -10,11 +10,10 @@
 
 mod common;
 
+use c4g_analysis::pruning::{PruneOptions, SceneAnalysis};
 use c4g_engine::{Engine, EngineOptions};
-use c4g_renderer::pruning::{PruneOptions, SceneAnalysis};
-use c4g_renderer::{
-    Camera, CpuRasterizer, NormalizedIntrinsics, Rasterizer, RenderOptions, Trajectory, metrics,
-};
+use c4g_renderer::{CpuRasterizer, Rasterizer, RenderOptions, fidelity};
+use c4g_scene::{Camera, NormalizedIntrinsics, Trajectory};
 use glam::Affine3A;
 
 const MIN_PSNR_DB: f64 = 45.0;
@@ -59,7 +58,7 @@ fn pruned_tiny_scenes_render_like_the_full_ones_from_the_measured_views() {
             for camera in &cameras {
                 let full = rasterizer.render(set, camera, &options).unwrap();
                 let less = rasterizer.render(&pruned, camera, &options).unwrap();
-                let psnr = metrics::psnr(&full.rgb, &less.rgb, 64, 64, None).unwrap();
+                let psnr = fidelity::psnr(&full.rgb, &less.rgb, 64, 64, None).unwrap();
                 worst = worst.min(psnr);
             }
         }

@@ -17,11 +17,10 @@
 
 mod common;
 
+use c4g_analysis::pruning::{PruneOptions, SceneAnalysis};
 use c4g_engine::{Engine, EngineOptions, ErrorKind, QuerySubset};
-use c4g_renderer::pruning::{PruneOptions, SceneAnalysis};
-use c4g_renderer::{
-    Camera, CpuRasterizer, NormalizedIntrinsics, Rasterizer, RenderOptions, Trajectory, metrics,
-};
+use c4g_renderer::{CpuRasterizer, Rasterizer, RenderOptions, fidelity};
+use c4g_scene::{Camera, NormalizedIntrinsics, Trajectory};
 use glam::Affine3A;
 
 const ALL_QUERIES_TOLERANCE: f32 = 1e-5;
@@ -137,7 +136,7 @@ fn dropping_pruned_queries_moves_the_kept_gaussians_a_little() {
             for camera in &cameras {
                 let exact = rasterizer.render(f, camera, &options).unwrap();
                 let approx = rasterizer.render(d, camera, &options).unwrap();
-                let psnr = metrics::psnr(&exact.rgb, &approx.rgb, 64, 64, None).unwrap();
+                let psnr = fidelity::psnr(&exact.rgb, &approx.rgb, 64, 64, None).unwrap();
                 worst_psnr = worst_psnr.min(psnr);
             }
         }

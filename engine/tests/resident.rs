@@ -13,7 +13,7 @@ mod common;
 use c4g_engine::{
     ContextFrame, Encoding, Engine, EngineOptions, QuerySubset, ResidentStats, TimePolicy,
 };
-use c4g_renderer::GaussianSet;
+use c4g_scene::GaussianSet;
 use common::{skip_reason, workspace};
 
 fn engine(package: &str, resident_budget: Option<usize>) -> Engine {

@@ -10,9 +10,8 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use c4g_engine::{ContextFrame, Engine, EngineOptions};
-use c4g_renderer::{
-    Camera, CpuRasterizer, NormalizedIntrinsics, Rasterizer, RenderOptions, metrics,
-};
+use c4g_renderer::{CpuRasterizer, Rasterizer, RenderOptions, fidelity};
+use c4g_scene::{Camera, NormalizedIntrinsics};
 use glam::Mat4;
 use serde_json::Value;
 
@@ -43,7 +42,7 @@ fn pose(value: &Value) -> Mat4 {
     Mat4::from_cols_array_2d(&cols)
 }
 
-fn render_psnr(set: &c4g_renderer::GaussianSet, w2c: Mat4, truth: &image::RgbImage) -> f64 {
+fn render_psnr(set: &c4g_scene::GaussianSet, w2c: Mat4, truth: &image::RgbImage) -> f64 {
     let (w, h) = truth.dimensions();
     let camera =
         Camera::from_world_to_camera_matrix(NormalizedIntrinsics::C4G_DEFAULT.to_pixels(w, h), w2c)
@@ -52,7 +51,7 @@ fn render_psnr(set: &c4g_renderer::GaussianSet, w2c: Mat4, truth: &image::RgbIma
         .render(set, &camera, &RenderOptions::default())
         .unwrap();
     let rgb: Vec<f32> = image.rgb.iter().map(|v| v.clamp(0.0, 1.0)).collect();
-    metrics::psnr(&rgb, &to_unit(truth), w, h, None).unwrap()
+    fidelity::psnr(&rgb, &to_unit(truth), w, h, None).unwrap()
 }
 
 #[test]
@@ -125,7 +124,7 @@ fn test_clips_score_the_python_paths_psnr_through_engine_and_renderer() {
                     .map(|p| (mean[p % 3] / pixels) as f32)
                     .collect();
                 let baseline =
-                    metrics::psnr(&flat, &to_unit(truth), truth.width(), truth.height(), None)
+                    fidelity::psnr(&flat, &to_unit(truth), truth.width(), truth.height(), None)
                         .unwrap();
                 assert!(
                     ours > baseline + 3.0,

@@ -12,10 +12,9 @@
 //! without a panic and writes back to bytes that decode.
 #![no_main]
 
-use c4g_renderer::formats::{c4gs, c4gv, frames_zip, ply, splat, splatv, spz};
-use c4g_renderer::{
-    Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, Rasterizer, RenderOptions,
-};
+use c4g_formats::{c4gs, c4gv, frames_zip, ply, splat, splatv, spz};
+use c4g_scene::{Camera, GaussianSet, NormalizedIntrinsics};
+use c4g_renderer::{CpuRasterizer, Rasterizer, RenderOptions};
 
 fn renders_finite(set: &GaussianSet) {
     let camera = Camera::from_normalized(

@@ -23,10 +23,9 @@
 
 use std::time::Duration;
 
-use c4g_renderer::raster::Footprint;
-use c4g_renderer::{
-    Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, Rasterizer, RenderOptions,
-};
+use c4g_renderer::{CpuRasterizer, Rasterizer, RenderOptions};
+use c4g_scene::Footprint;
+use c4g_scene::{Camera, GaussianSet, NormalizedIntrinsics};
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use glam::Affine3A;
 

@@ -4,9 +4,8 @@
 mod common;
 
 use c4g_renderer::raster::{ALPHA_MAX, NEAR};
-use c4g_renderer::{
-    Camera, CpuRasterizer, FeatureBlock, GaussianSet, Image, Intrinsics, Rasterizer, RenderOptions,
-};
+use c4g_renderer::{CpuRasterizer, Image, Rasterizer, RenderOptions};
+use c4g_scene::{Camera, FeatureBlock, GaussianSet, Intrinsics};
 use common::*;
 
 const GREY: [f32; 3] = [0.5, 0.5, 0.5];

@@ -3,7 +3,8 @@
 
 mod common;
 
-use c4g_renderer::{CpuRasterizer, FeatureBlock, GaussianSet, Image, Rasterizer, RenderOptions};
+use c4g_renderer::{CpuRasterizer, Image, Rasterizer, RenderOptions};
+use c4g_scene::{FeatureBlock, GaussianSet};
 use common::*;
 use proptest::prelude::*;
 

@@ -14,10 +14,9 @@
 
 mod common;
 
-use c4g_renderer::raster::Footprint;
-use c4g_renderer::{
-    Camera, CpuRasterizer, GaussianSet, Image, Intrinsics, Rasterizer, RenderOptions,
-};
+use c4g_renderer::{CpuRasterizer, Image, Rasterizer, RenderOptions};
+use c4g_scene::Footprint;
+use c4g_scene::{Camera, GaussianSet, Intrinsics};
 use common::*;
 use glam::Affine3A;
 

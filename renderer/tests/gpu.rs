@@ -18,12 +18,10 @@ mod common;
 
 use std::sync::OnceLock;
 
-use c4g_renderer::raster::Footprint;
 use c4g_renderer::raster::gpu::{AdapterChoice, GpuOptions};
-use c4g_renderer::{
-    Camera, CpuRasterizer, FeatureBlock, GaussianSet, GpuRasterizer, Image, Intrinsics,
-    NormalizedIntrinsics, Rasterizer, RenderOptions, RendererError,
-};
+use c4g_renderer::{CpuRasterizer, GpuRasterizer, Image, Rasterizer, RenderOptions};
+use c4g_scene::Footprint;
+use c4g_scene::{Camera, FeatureBlock, GaussianSet, Intrinsics, NormalizedIntrinsics, SceneError};
 use common::*;
 use glam::{Affine3A, Quat, Vec3};
 
@@ -544,6 +542,6 @@ fn an_adapter_that_does_not_exist_is_a_clear_error() {
         max_buffer_bytes: None,
     })
     .unwrap_err();
-    assert!(matches!(err, RendererError::GpuUnavailable(_)), "{err}");
+    assert!(matches!(err, SceneError::GpuUnavailable(_)), "{err}");
     println!("{err}");
 }

@@ -10,8 +10,9 @@
 
 mod common;
 
-use c4g_renderer::raster::{ALPHA_MAX, Footprint};
+use c4g_renderer::raster::ALPHA_MAX;
 use c4g_renderer::{CpuRasterizer, Rasterizer, RenderOptions};
+use c4g_scene::Footprint;
 use common::*;
 
 #[test]

@@ -3,7 +3,7 @@
 
 mod common;
 
-use c4g_renderer::raster::Footprint;
+use c4g_scene::Footprint;
 use common::*;
 
 #[test]

@@ -7,9 +7,9 @@
 use std::io::{Cursor, Write};
 use std::path::Path;
 
+use c4g_formats::{c4gs, c4gv, frames_zip, ply, splat, splatv, spz};
 use c4g_proto::v1 as pb;
-use c4g_renderer::formats::{c4gs, c4gv, frames_zip, ply, splat, splatv, spz};
-use c4g_renderer::{Gaussian, GaussianSet};
+use c4g_scene::{Gaussian, GaussianSet};
 use c4g_server::fuzzing::CLIP_MARK;
 use glam::{Quat, Vec3};
 use prost::Message;
@@ -76,7 +76,7 @@ fn set() -> GaussianSet {
 fn with_features(set: &GaussianSet) -> GaussianSet {
     let values = (0..set.len() * 2).map(|i| i as f32 * 0.25).collect();
     set.clone()
-        .with_features(c4g_renderer::FeatureBlock::new(2, values).expect("features"))
+        .with_features(c4g_scene::FeatureBlock::new(2, values).expect("features"))
         .expect("features")
 }
 

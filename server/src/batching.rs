@@ -20,7 +20,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use c4g_engine::Encoding;
-use c4g_renderer::GaussianSet;
+use c4g_scene::GaussianSet;
 use tokio::sync::oneshot;
 
 use crate::ServiceError;

@@ -3,7 +3,7 @@
 //! or the input camera (`input`), resolved against the clip's given cameras at a frame's time.
 //! REST bodies and gRPC messages both arrive here.
 
-use c4g_renderer::{Camera, NormalizedIntrinsics};
+use c4g_scene::{Camera, NormalizedIntrinsics};
 use glam::{Affine3A, Mat4};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;

@@ -9,16 +9,16 @@
 //! times: `models/c4g-tiny/README.md`). So after the encode, the Gaussians decoded at the later context
 //! frames' times are rendered at their given cameras, and the one factor on the translations
 //! that best matches the frames as the model saw them is kept with the cameras
-//! (`c4g_renderer::align::fit_translation_scale`; `ClipCameras::scale_fit`). Decoded Gaussians,
+//! (`c4g_analysis::align::fit_translation_scale`; `ClipCameras::scale_fit`). Decoded Gaussians,
 //! exports and stated cameras are untouched: only the given cameras move to the model's scale.
 //!
 //! The fit is deterministic (the same upload gives the same clip record, as content addressing
 //! needs) and costs 63 renders of each later context frame at the model's input size (49 grid
 //! factors, 14 golden-section ones).
 
+use c4g_analysis::align::{ScaleView, fit_translation_scale};
 use c4g_engine::Encoding;
 use c4g_renderer::RenderOptions;
-use c4g_renderer::align::{ScaleView, fit_translation_scale};
 use image::RgbImage;
 
 use crate::ServiceError;

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use c4g_engine::{EngineOptions, ExecutionProvider, TimePolicy};
-use c4g_renderer::raster::Footprint;
+use c4g_scene::Footprint;
 use clap::{Parser, ValueEnum};
 
 /// A setting that never appears in logs or debug output: the API key. Read it with

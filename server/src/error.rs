@@ -279,7 +279,7 @@ mod tests {
     #[test]
     fn engine_and_renderer_errors_are_classified_by_who_can_fix_them() {
         use c4g_engine::EngineError;
-        use c4g_renderer::RendererError;
+        use c4g_scene::SceneError;
         let cases = [
             (
                 ServiceError::from(EngineError::InvalidInput("x".into())),
@@ -296,11 +296,11 @@ mod tests {
                 ServiceErrorKind::Internal,
             ),
             (
-                ServiceError::from(RendererError::InvalidCamera("x".into())),
+                ServiceError::from(SceneError::InvalidCamera("x".into())),
                 ServiceErrorKind::InvalidInput,
             ),
             (
-                ServiceError::from(RendererError::Gpu("lost".into())),
+                ServiceError::from(SceneError::Gpu("lost".into())),
                 ServiceErrorKind::Internal,
             ),
         ];

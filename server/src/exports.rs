@@ -14,9 +14,9 @@
 
 use std::sync::Arc;
 
-use c4g_renderer::formats::frames_zip::{self, FrameFormat};
-use c4g_renderer::formats::splatv;
-use c4g_renderer::{CANONICAL_CHANNELS, GaussianSet};
+use c4g_formats::frames_zip::{self, FrameFormat};
+use c4g_formats::splatv;
+use c4g_scene::{CANONICAL_CHANNELS, GaussianSet};
 
 use crate::ServiceError;
 use crate::service::Service;

@@ -27,9 +27,10 @@
 use std::num::NonZeroUsize;
 use std::sync::{Arc, Mutex, PoisonError};
 
+use c4g_analysis::features::{FeaturePca, cosine, pixel_feature, select_similar};
 use c4g_engine::{Encoding, EngineError, Keyframes};
-use c4g_renderer::features::{FeaturePca, cosine, pixel_feature, select_similar};
-use c4g_renderer::{CpuRasterizer, GaussianSet, Image, RenderOptions};
+use c4g_renderer::{CpuRasterizer, Image, RenderOptions};
+use c4g_scene::GaussianSet;
 use lru::LruCache;
 use serde::{Deserialize, Serialize};
 
@@ -438,7 +439,7 @@ impl Service {
             ..CameraSpec::default()
         });
         let cameras = self.input_cameras_for(&record, [&camera]);
-        let resolve = |t: f64| -> Result<c4g_renderer::Camera, ServiceError> {
+        let resolve = |t: f64| -> Result<c4g_scene::Camera, ServiceError> {
             camera
                 .resolve(cameras.as_ref(), t, None)?
                 .camera(width, height)
@@ -518,7 +519,7 @@ fn raw_view(image: &Image) -> Result<FeatureView, ServiceError> {
 /// The feature the clicked pixel shows (its surface's, by the rasterizer's weights).
 fn clicked_feature(
     set: &GaussianSet,
-    camera: &c4g_renderer::Camera,
+    camera: &c4g_scene::Camera,
     options: &RenderOptions,
     click: Click,
 ) -> Result<Vec<f32>, ServiceError> {
@@ -534,7 +535,7 @@ fn clicked_feature(
             click.x,
             click.y,
             click.t,
-            c4g_renderer::tracking::MIN_COVERAGE
+            c4g_analysis::tracking::MIN_COVERAGE
         ))
     })
 }

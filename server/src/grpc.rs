@@ -8,7 +8,7 @@ use axum::http::HeaderMap;
 use bytes::BytesMut;
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_server::{C4g, C4gServer};
-use c4g_renderer::Trajectory;
+use c4g_scene::Trajectory;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
@@ -28,7 +28,7 @@ use crate::streaming::{STREAM_AHEAD, Spacing, StreamRequest, check_compact, plan
 use crate::tracking::{TrackQuery, TrackRequest, Tracker};
 use crate::wire::{self, Precision};
 use crate::{AppState, ServiceError};
-use c4g_renderer::formats::c4gv::EncodeOptions;
+use c4g_formats::c4gv::EncodeOptions;
 
 /// True when a request is a gRPC call.
 pub fn is_grpc(headers: &HeaderMap) -> bool {

@@ -6,17 +6,16 @@
 //! them (interpolated from those), and renders each sample at the model's input size from the
 //! first context camera and a ring of novel views: an orbit of ±15° about the point at the
 //! scene's median depth. What pruning drops then changes no render from those views by more than
-//! the stated floors (`c4g_renderer::pruning`); views far outside that ring are not covered.
+//! the stated floors (`c4g_analysis::pruning`); views far outside that ring are not covered.
 
 use std::num::NonZeroUsize;
 use std::sync::{Arc, Mutex, PoisonError};
 
+use c4g_analysis::pruning::{PruneOptions, SceneAnalysis};
 use c4g_engine::{Encoding, Engine, KeyframeTrack};
-use c4g_renderer::pruning::{PruneOptions, SceneAnalysis};
-use c4g_renderer::raster::Footprint;
-use c4g_renderer::{
-    Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, RenderOptions, Trajectory,
-};
+use c4g_renderer::{CpuRasterizer, RenderOptions};
+use c4g_scene::Footprint;
+use c4g_scene::{Camera, GaussianSet, NormalizedIntrinsics, Trajectory};
 use glam::Affine3A;
 use lru::LruCache;
 

@@ -8,8 +8,8 @@
 //! measures (`docs/tradeoffs.md` has the table, the plot and the rule that chose them); the
 //! default, `exact`, changes nothing.
 
+use c4g_analysis::pruning::PruneOptions;
 use c4g_engine::Keyframes;
-use c4g_renderer::pruning::PruneOptions;
 use serde::{Deserialize, Serialize};
 
 use crate::ServiceError;

@@ -3,7 +3,7 @@
 //!
 //! Frame by frame in time order, the set decoded exactly at the frame's time is rendered and its
 //! camera moved until the render matches the frame as the model saw it (centre-cropped and
-//! resized to the model's input): `c4g_renderer::align_camera`, Levenberg–Marquardt on an
+//! resized to the model's input): `c4g_analysis::align_camera`, Levenberg–Marquardt on an
 //! analytic camera Jacobian over a coarse-to-fine pyramid with an alpha-weighted Huber loss.
 //! The first context camera is the model's frame itself (the identity, by C4G's convention), so
 //! it is not moved; each later frame starts from the previous frame's solution, as a video's
@@ -22,8 +22,9 @@
 use std::path::Path;
 use std::sync::Arc;
 
+use c4g_analysis::{AlignOptions, Alignment};
 use c4g_engine::preprocess::{crop_and_resize, decode_frame};
-use c4g_renderer::{AlignOptions, Alignment, Camera, GaussianSet, NormalizedIntrinsics};
+use c4g_scene::{Camera, GaussianSet, NormalizedIntrinsics};
 use glam::{Affine3A, Mat4};
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
@@ -270,14 +271,14 @@ fn chain(
                 max_iterations: 1,
                 ..options.clone()
             };
-            let mut fit = c4g_renderer::align_camera(set, target, &identity, &one_step)?;
+            let mut fit = c4g_analysis::align_camera(set, target, &identity, &one_step)?;
             fit.camera = identity;
             fit.residual = fit.initial_residual;
             fit.iterations = 0;
             fit.converged = true;
             fit
         } else {
-            c4g_renderer::align_camera(set, target, &previous, options)?
+            c4g_analysis::align_camera(set, target, &previous, options)?
         };
         previous = fit.camera;
         out.push(fit);

@@ -7,7 +7,7 @@
 use std::sync::Arc;
 
 use c4g_proto::v1 as pb;
-use c4g_renderer::Trajectory;
+use c4g_scene::Trajectory;
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 

@@ -2,8 +2,9 @@
 //! feature and asked for (or, with `auto`, when a hardware GPU is present), and the footprint it
 //! renders with (the package's, unless `--footprint` says otherwise).
 
-use c4g_renderer::raster::Footprint;
-use c4g_renderer::{Camera, CpuRasterizer, GaussianSet, Image, Rasterizer, RenderOptions};
+use c4g_renderer::{CpuRasterizer, Image, Rasterizer, RenderOptions};
+use c4g_scene::Footprint;
+use c4g_scene::{Camera, GaussianSet};
 
 use crate::ServiceError;
 use crate::config::RendererArg;

@@ -14,7 +14,8 @@ use std::time::{Duration, Instant};
 use c4g_engine::{
     ContextFrame, Encoding, Engine, EngineError, KeyframeTrack, Keyframes, QuerySubset,
 };
-use c4g_renderer::{Camera, GaussianSet, Image, Trajectory};
+use c4g_renderer::Image;
+use c4g_scene::{Camera, GaussianSet, Trajectory};
 use sha2::{Digest, Sha256};
 use tokio::sync::Semaphore;
 
@@ -379,7 +380,7 @@ impl Service {
         &self,
         id: &str,
         encoding: &Encoding,
-        prune: Option<&c4g_renderer::pruning::PruneOptions>,
+        prune: Option<&c4g_analysis::pruning::PruneOptions>,
     ) -> Result<Option<Vec<bool>>, ServiceError> {
         prune
             .map(|options| {
@@ -764,10 +765,7 @@ pub struct SetPlan {
 impl SetPlan {
     /// The Gaussians (of those kept) that never move, when keyframes show it: interpolation
     /// between keyframes that agree gives the same values. `None` for an exact plan.
-    pub fn static_mask(
-        &self,
-        options: &c4g_renderer::formats::c4gv::EncodeOptions,
-    ) -> Option<Vec<bool>> {
+    pub fn static_mask(&self, options: &c4g_formats::c4gv::EncodeOptions) -> Option<Vec<bool>> {
         let track = self.track.as_ref()?;
         // Keyframes decoded on the kept queries hold the kept Gaussians only.
         let keep = self

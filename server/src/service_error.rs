@@ -9,7 +9,7 @@
 use std::time::Duration;
 
 use c4g_engine::{EngineError, ErrorKind as EngineErrorKind};
-use c4g_renderer::RendererError;
+use c4g_scene::SceneError;
 
 /// An error answered to a client. Messages say what happened and what to do about it.
 #[derive(Debug, thiserror::Error)]
@@ -72,7 +72,7 @@ pub enum ServiceError {
     Engine(#[from] EngineError),
     /// A renderer error, classified by its variant.
     #[error(transparent)]
-    Renderer(#[from] RendererError),
+    Renderer(#[from] SceneError),
     /// One error answered to several requests (a batched decode that failed), as it is.
     #[error(transparent)]
     Shared(std::sync::Arc<ServiceError>),
@@ -232,20 +232,20 @@ fn engine_kind(kind: EngineErrorKind) -> ServiceErrorKind {
 /// Renderer errors by variant: what a request's cameras, sizes or options got wrong is the
 /// caller's; a missing GPU, a thread pool or file failure, or an invalid Gaussian (which only the
 /// model can have produced: sets are validated when decoded) is the server's.
-fn renderer_kind(error: &RendererError) -> ServiceErrorKind {
+fn renderer_kind(error: &SceneError) -> ServiceErrorKind {
     match error {
-        RendererError::ThreadPool(_)
-        | RendererError::Io { .. }
-        | RendererError::GpuUnavailable(_)
-        | RendererError::Gpu(_)
-        | RendererError::InvalidGaussian { .. } => ServiceErrorKind::Internal,
-        RendererError::CanonicalLength { .. }
-        | RendererError::LengthMismatch { .. }
-        | RendererError::ZeroFeatureWidth
-        | RendererError::InvalidCamera(_)
-        | RendererError::InvalidRenderOptions(_)
-        | RendererError::InvalidTrajectory(_)
-        | RendererError::InvalidImage(_)
-        | RendererError::Format { .. } => ServiceErrorKind::InvalidInput,
+        SceneError::ThreadPool(_)
+        | SceneError::Io { .. }
+        | SceneError::GpuUnavailable(_)
+        | SceneError::Gpu(_)
+        | SceneError::InvalidGaussian { .. } => ServiceErrorKind::Internal,
+        SceneError::CanonicalLength { .. }
+        | SceneError::LengthMismatch { .. }
+        | SceneError::ZeroFeatureWidth
+        | SceneError::InvalidCamera(_)
+        | SceneError::InvalidRenderOptions(_)
+        | SceneError::InvalidTrajectory(_)
+        | SceneError::InvalidImage(_)
+        | SceneError::Format { .. } => ServiceErrorKind::InvalidInput,
     }
 }

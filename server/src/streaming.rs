@@ -8,7 +8,7 @@
 //! the decoding at the next set.
 //!
 //! [`SetStream::compact`] is the stream as `C4GV` bytes (the renderer's compact 4D stream,
-//! `renderer/src/formats/c4gv.rs`). Its static Gaussians (sent once) are those a keyframed
+//! `formats/src/c4gv/mod.rs`). Its static Gaussians (sent once) are those a keyframed
 //! stream's keyframes show never to move; an exact stream's sets are known only as they are
 //! decoded, so it sends every Gaussian in every frame (c4g-tiny moves all of them a little
 //! anyway, `docs/benchmarks.md`).
@@ -16,8 +16,8 @@
 use std::sync::Arc;
 
 use c4g_engine::Encoding;
-use c4g_renderer::GaussianSet;
-use c4g_renderer::formats::c4gv::{self, EncodeOptions, Encoder};
+use c4g_formats::c4gv::{self, EncodeOptions, Encoder};
+use c4g_scene::GaussianSet;
 use futures_util::Stream;
 use tokio::sync::mpsc;
 

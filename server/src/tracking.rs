@@ -3,7 +3,7 @@
 //!
 //! The sets of a clip are its Gaussians' trajectories (query `i` is the same Gaussian at every
 //! time), so a track is read off them: a point follows the Gaussians that explain its pixel at the
-//! query time, by their rasterizer weights (`c4g_renderer::tracking`, where the rule is stated).
+//! query time, by their rasterizer weights (`c4g_analysis::tracking`, where the rule is stated).
 //! Positions are in the input camera at each time (the clip's given or recovered cameras,
 //! interpolated between its context cameras; the identity without them, the static camera of the
 //! public C4G code);
@@ -15,10 +15,10 @@
 //! Gaussians carry it:
 //! - the query's feature is the rendered feature image's vector at its pixel at the query time
 //!   (input camera; a pixel showing too little, alpha under
-//!   [`MIN_COVERAGE`](c4g_renderer::tracking::MIN_COVERAGE), anchors nothing);
+//!   [`MIN_COVERAGE`](c4g_analysis::tracking::MIN_COVERAGE), anchors nothing);
 //! - at each answered time the point is where the rendered feature image (input camera at that
 //!   time) matches it best: the pixel of largest cosine similarity, refined per axis by a
-//!   parabola through its neighbours (`c4g_renderer::features::best_match`; ties go to the pixel
+//!   parabola through its neighbours (`c4g_analysis::features::best_match`; ties go to the pixel
 //!   nearest the query point); its depth is the render's expected depth there, its 3D point the
 //!   pixel's ray at that depth;
 //! - it is visible when the match is good, similarity at least [`MATCH_SIMILARITY`], and what
@@ -29,11 +29,12 @@
 
 use std::sync::Arc;
 
-use c4g_renderer::features::{best_match_near, cosine};
-use c4g_renderer::tracking::{
+use c4g_analysis::features::{best_match_near, cosine};
+use c4g_analysis::tracking::{
     MIN_COVERAGE, OCCLUSION_ABSOLUTE, OCCLUSION_RELATIVE, Observation, PointAnchor, anchor, observe,
 };
-use c4g_renderer::{Camera, CpuRasterizer, GaussianSet, Image, RenderOptions};
+use c4g_renderer::{CpuRasterizer, Image, RenderOptions};
+use c4g_scene::{Camera, GaussianSet};
 use serde::{Deserialize, Serialize};
 
 use crate::ServiceError;

@@ -2,10 +2,10 @@
 //! binary format of `docs/api.md` (`C4GS`) and the column packing both share are the renderer's
 //! [`c4gs`] codec, which the client reads with.
 
+use c4g_formats::c4gs;
+pub use c4g_formats::c4gs::Precision;
 use c4g_proto::v1 as pb;
-use c4g_renderer::GaussianSet;
-use c4g_renderer::formats::c4gs;
-pub use c4g_renderer::formats::c4gs::Precision;
+use c4g_scene::GaussianSet;
 use serde_json::{Value, json};
 
 use crate::ServiceError;

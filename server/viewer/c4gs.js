@@ -1,5 +1,5 @@
 // `C4GS`, the service's packed binary Gaussian sets (docs/api.md; the codec is
-// renderer/src/formats/c4gs.rs), decoded in the browser. Little endian: `b"C4GS"`, u16 version
+// formats/src/c4gs.rs), decoded in the browser. Little endian: `b"C4GS"`, u16 version
 // (1), u8 precision (0 f32, 1 f16), u8 reserved, u32 frames, u32 N; then per frame an f64 time and
 // the columns means (N×3), scales (N×3), rotations (N×4, w x y z), opacities (N), colours (N×3).
 // Every length is checked against the header before anything is read.

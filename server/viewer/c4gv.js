@@ -1,5 +1,5 @@
 // `C4GV`, the compact 4D stream of `POST /v1/clips/{id}/stream`, decoded in the browser as its
-// bytes arrive. The specification is the module doc of renderer/src/formats/c4gv.rs; this follows
+// bytes arrive. The specification is the module doc of formats/src/c4gv/mod.rs; this follows
 // its "Reading" section. Little endian. A header (`b"C4GV"`, u16 version 1, u8 predictor 0, u8
 // reserved, u32 N, u32 S static Gaussians, five f64 grid steps, then the ⌈N/8⌉-byte static mask),
 // then records, each a 6-byte head (u8 kind: 1 static, 2 keyframe, 3 delta frame, 4 index; u8

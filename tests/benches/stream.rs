@@ -17,9 +17,8 @@ use std::time::Instant;
 use c4g_e2e::{Server, upload_synthetic};
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
-use c4g_renderer::{
-    Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, Rasterizer, RenderOptions, metrics,
-};
+use c4g_renderer::{CpuRasterizer, Rasterizer, RenderOptions, fidelity};
+use c4g_scene::{Camera, GaussianSet, NormalizedIntrinsics};
 use glam::Affine3A;
 
 const STEP_S: f64 = 0.001;
@@ -146,7 +145,7 @@ fn main() {
                         .iter()
                         .zip(&exact_renders)
                         .map(|(set, reference)| {
-                            metrics::psnr(reference, &render(set), SIZE, SIZE, None).unwrap()
+                            fidelity::psnr(reference, &render(set), SIZE, SIZE, None).unwrap()
                         })
                         .fold(f64::INFINITY, f64::min)
                 });

@@ -144,7 +144,7 @@ fn concurrent_exact_requests_share_decoder_runs_and_get_what_they_would_alone() 
 
 /// Every parameter of the sets in a C4GS answer, in order.
 fn sets(bytes: &[u8]) -> Vec<f32> {
-    c4g_renderer::formats::c4gs::decode(bytes)
+    c4g_formats::c4gs::decode(bytes)
         .unwrap()
         .into_iter()
         .flat_map(|(_, set)| set.to_canonical())

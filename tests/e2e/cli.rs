@@ -6,7 +6,7 @@ use std::path::Path;
 use std::process::{Command, Output};
 
 use c4g_e2e::{Server, binary, ort_available, shared_data, synthetic_clip};
-use c4g_renderer::formats::{frames_zip, ply};
+use c4g_formats::{frames_zip, ply};
 use reqwest::blocking::Client;
 use serde_json::{Value, json};
 

@@ -2,17 +2,17 @@
 //! `StreamGaussians` with `compact`, against the exact sets REST decodes at the same times.
 //!
 //! Reference: `POST /v1/clips/{id}/gaussians` in the binary format at f32 (bit-exact sets).
-//! Tolerances are the codec's stated bounds (`renderer/src/formats/c4gv.rs`): positions within
+//! Tolerances are the codec's stated bounds (`formats/src/c4gv/mod.rs`): positions within
 //! the asked `position_error` per coordinate, scales within 4.9e-4 relative, rotations within
 //! 4.9e-4 rad, opacity and colour within 4.9e-4; each bound with 1e-6 of slack for the f32
 //! rounding of the values compared (the bounds are stated in f64 of the decoded f32s).
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
 use c4g_e2e::{Server, ort_available, post_json, upload_synthetic};
+use c4g_formats::{c4gs, c4gv};
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
-use c4g_renderer::GaussianSet;
-use c4g_renderer::formats::{c4gs, c4gv};
+use c4g_scene::GaussianSet;
 use serde_json::{Value, json};
 
 const SLACK: f64 = 1e-6;

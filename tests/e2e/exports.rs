@@ -6,7 +6,7 @@
 //!   as SH DC): the only error is f32 rounding of those transforms, within [`PLY_SLACK`].
 //! - `.spz.zip`: the archive opened with the `zip` crate (a container only), each `.spz` read by
 //!   Niantic's reference library, `@adobe/spz` (npm, the WebAssembly build of nianticlabs/spz), in
-//!   `tests/browser/spz.mjs`. Tolerances: the quantisation bounds `renderer/src/formats/spz.rs`
+//!   `tests/browser/spz.mjs`. Tolerances: the quantisation bounds `formats/src/spz.rs`
 //!   states, per attribute.
 //! - `.splatv`: `models/python/c4g/splatv.py`, a reader written from the format's specification
 //!   (splaTV's viewer) apart from the Rust writer, evaluated at each exported time. The file is a
@@ -24,11 +24,10 @@ use std::process::Command;
 use c4g_e2e::{
     Server, node_packages, ort_available, post_json, upload_synthetic, venv_python, workspace,
 };
-use c4g_renderer::formats::{c4gs, ply, splatv, spz};
-use c4g_renderer::metrics::psnr;
-use c4g_renderer::{
-    Camera, CpuRasterizer, GaussianSet, NormalizedIntrinsics, Rasterizer, RenderOptions,
-};
+use c4g_formats::{c4gs, ply, splatv, spz};
+use c4g_renderer::fidelity::psnr;
+use c4g_renderer::{CpuRasterizer, Rasterizer, RenderOptions};
+use c4g_scene::{Camera, GaussianSet, NormalizedIntrinsics};
 use glam::Affine3A;
 use serde_json::{Value, json};
 
@@ -359,7 +358,7 @@ fn every_export_reads_back_with_an_independent_reader() {
     assert!(splatv_db >= SPLATV_MIN_DB, "splatv render {splatv_db} dB");
 }
 
-/// The bounds `renderer/src/formats/spz.rs` states for a file of `bits` fractional bits:
+/// The bounds `formats/src/spz.rs` states for a file of `bits` fractional bits:
 /// position (half a step), `ln` scale, rotation angle, opacity, colour; each with 1e-6 of slack
 /// for the f32 rounding of the values compared.
 fn spz_bounds(bits: u8) -> [f64; 5] {

@@ -10,16 +10,15 @@
 //! decoder lifts object ids (`models/c4g-tiny-objects`), which need masks no upload carries.
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
+use c4g_analysis::features::FeaturePca;
 use c4g_e2e::{Server, binary, json_of, ort_available, post_json, upload_synthetic, workspace};
 use c4g_engine::{ContextFrame, Engine, EngineOptions};
+use c4g_formats::{c4gs, ply};
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
-use c4g_renderer::features::FeaturePca;
-use c4g_renderer::formats::{c4gs, ply};
-use c4g_renderer::raster::Footprint;
-use c4g_renderer::{
-    Camera, CpuRasterizer, FeatureBlock, GaussianSet, NormalizedIntrinsics, RenderOptions,
-};
+use c4g_renderer::{CpuRasterizer, RenderOptions};
+use c4g_scene::Footprint;
+use c4g_scene::{Camera, FeatureBlock, GaussianSet, NormalizedIntrinsics};
 use serde_json::{Value, json};
 
 const MODEL: &str = "models/fixtures/feature-stream";

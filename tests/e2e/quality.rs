@@ -97,7 +97,7 @@ fn presets_prune_the_same_gaussians_everywhere_and_bad_options_are_400() {
     };
     let exact = render(json!({"t": 0.3}));
     let pruned = render(json!({"t": 0.3, "prune": {}}));
-    let psnr = c4g_renderer::metrics::psnr(&exact, &pruned, 64, 64, None).unwrap();
+    let psnr = c4g_renderer::fidelity::psnr(&exact, &pruned, 64, 64, None).unwrap();
     eprintln!("fast keeps {kept}, balanced {balanced} of {GAUSSIANS}; pruned render {psnr:.1} dB");
     assert!(psnr >= MIN_PRUNED_RENDER_PSNR_DB, "{psnr} dB");
 
@@ -241,7 +241,7 @@ fn drop_queries_decodes_the_kept_queries_alone_and_a_package_that_cannot_is_422(
     };
     let exact = render(json!({"t": 0.3}));
     let approx = render(json!({"t": 0.3, "prune": {"drop_queries": true}}));
-    let psnr = c4g_renderer::metrics::psnr(&exact, &approx, 64, 64, None).unwrap();
+    let psnr = c4g_renderer::fidelity::psnr(&exact, &approx, 64, 64, None).unwrap();
     eprintln!(
         "drop_queries keeps {} of {GAUSSIANS}; positions move up to {largest:.3}; render {psnr:.1} dB from exact",
         counts(&dropped)[0]

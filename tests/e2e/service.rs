@@ -12,7 +12,8 @@ use c4g_e2e::{
 use c4g_engine::{ContextFrame, Engine, EngineOptions};
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
-use c4g_renderer::{Camera, CpuRasterizer, NormalizedIntrinsics, Rasterizer, RenderOptions};
+use c4g_renderer::{CpuRasterizer, Rasterizer, RenderOptions};
+use c4g_scene::{Camera, NormalizedIntrinsics};
 use glam::{Affine3A, Mat4};
 use reqwest::blocking::Client;
 use serde_json::{Value, json};
@@ -413,7 +414,7 @@ fn the_synthetic_test_clip_reconstructs_as_the_model_card_says_and_survives_a_re
             .map(|v| f32::from(*v) / 255.0)
             .collect();
         let truth = ground_truth(&dir, &format!("frame-{frame:02}.png"));
-        let psnr = c4g_renderer::metrics::psnr(&served, &truth, 64, 64, None).unwrap();
+        let psnr = c4g_renderer::fidelity::psnr(&served, &truth, 64, 64, None).unwrap();
         let python = meta["python_psnr"]["interpolated"][k].as_f64().unwrap();
         assert!(
             (psnr - python).abs() < 0.15,

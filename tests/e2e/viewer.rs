@@ -21,7 +21,7 @@ use std::process::Command;
 use c4g_e2e::{
     Server, missing, node_packages, ort_available, synthetic_clip, upload_synthetic, workspace,
 };
-use c4g_renderer::metrics::psnr;
+use c4g_renderer::fidelity::psnr;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use serde_json::Value;
 

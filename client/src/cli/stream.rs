@@ -99,8 +99,7 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
                 let path = dir.join(format!("frame-{index:05}-t{}.ply", secs(frame.time)));
                 let (set, file) = (frame.gaussians.clone(), path.clone());
                 // The PLY writer is synchronous; keep it off the runtime's thread.
-                tokio::task::spawn_blocking(move || c4g_renderer::formats::ply::write(&file, &set))
-                    .await??;
+                tokio::task::spawn_blocking(move || c4g_formats::ply::write(&file, &set)).await??;
                 Some(path)
             }
             None => None,

@@ -65,12 +65,10 @@ mod cpu;
 #[cfg(feature = "gpu")]
 pub mod gpu;
 
-pub(crate) use cpu::tiles_3dgs;
+pub use cpu::tiles_3dgs;
 pub use cpu::{CpuRasterizer, PAIR_BUDGET, PixelWeight, TILE};
 
-use serde::{Deserialize, Serialize};
-
-use crate::{Camera, GaussianSet, RendererError};
+use c4g_scene::{Camera, Footprint, GaussianSet, SceneError};
 
 /// Nearest camera-space depth rendered (gsplat's near plane; the one C4G's reference passes its
 /// rasterizer, whose own cull is at 0.2: see the module documentation).
@@ -96,38 +94,6 @@ pub const ALPHA_MIN: f32 = 1.0 / 255.0;
 /// A pixel is finished when its transmittance would fall below this.
 pub const TRANSMITTANCE_MIN: f32 = 1e-4;
 
-/// Which pixels a Gaussian is evaluated at (the rules are in the [module](self) documentation).
-///
-/// In `model.json` and on the command line: `"ellipse"`, `"3dgs"`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
-pub enum Footprint {
-    /// The pixels within 3 sigma (Mahalanobis distance ≤ [`SIGMA_EXTENT`]): gsplat's and this
-    /// crate's rule, what c4g-tiny was trained with.
-    #[default]
-    #[serde(rename = "ellipse")]
-    Ellipse,
-    /// Every pixel of the 16×16 tiles that the original 3DGS rasterizer's square of radius
-    /// `⌈3√λmax⌉` reaches: what the public C4G code renders (and trained) with.
-    #[serde(rename = "3dgs")]
-    Tiles3dgs,
-}
-
-impl Footprint {
-    /// The name in `model.json` and on the command line.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Ellipse => "ellipse",
-            Self::Tiles3dgs => "3dgs",
-        }
-    }
-}
-
-impl std::fmt::Display for Footprint {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
 /// What a render call may vary.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RenderOptions {
@@ -145,19 +111,19 @@ pub struct RenderOptions {
 
 impl RenderOptions {
     /// Checks that these describe a render: `0 < near < far`, both finite, a finite background.
-    pub fn validate(&self) -> Result<(), RendererError> {
+    pub fn validate(&self) -> Result<(), SceneError> {
         if !(self.near.is_finite()
             && self.far.is_finite()
             && 0.0 < self.near
             && self.near < self.far)
         {
-            return Err(RendererError::InvalidRenderOptions(format!(
+            return Err(SceneError::InvalidRenderOptions(format!(
                 "near {} and far {} must be finite with 0 < near < far",
                 self.near, self.far
             )));
         }
         if !self.background.iter().all(|v| v.is_finite()) {
-            return Err(RendererError::InvalidRenderOptions(format!(
+            return Err(SceneError::InvalidRenderOptions(format!(
                 "background {:?} must be finite",
                 self.background
             )));
@@ -214,5 +180,5 @@ pub trait Rasterizer {
         gaussians: &GaussianSet,
         camera: &Camera,
         options: &RenderOptions,
-    ) -> Result<Image, RendererError>;
+    ) -> Result<Image, SceneError>;
 }

@@ -8,10 +8,9 @@
 
 use std::path::PathBuf;
 
-use c4g_renderer::raster::Footprint;
-use c4g_renderer::{
-    Camera, FeatureBlock, FeatureImage, GaussianSet, Image, Intrinsics, RenderOptions,
-};
+use c4g_renderer::{FeatureImage, Image, RenderOptions};
+use c4g_scene::Footprint;
+use c4g_scene::{Camera, FeatureBlock, GaussianSet, Intrinsics};
 use glam::Mat4;
 use safetensors::{Dtype, SafeTensors};
 

@@ -6,7 +6,7 @@ use axum::Json;
 use axum::extract::State;
 use axum::http::{HeaderMap, header};
 use axum::response::{IntoResponse, Response};
-use c4g_renderer::formats::{ply, splat};
+use c4g_formats::{ply, splat};
 use serde::Deserialize;
 use serde_json::Value;
 

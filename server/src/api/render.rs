@@ -5,7 +5,7 @@
 use axum::extract::State;
 use axum::http::{HeaderName, HeaderValue, header};
 use axum::response::{IntoResponse, Response};
-use c4g_renderer::Trajectory;
+use c4g_scene::Trajectory;
 use serde::Deserialize;
 use serde_json::Value;
 

@@ -13,7 +13,7 @@ use axum::body::Body;
 use axum::extract::State;
 use axum::http::header;
 use axum::response::{IntoResponse, Response};
-use c4g_renderer::formats::c4gv::EncodeOptions;
+use c4g_formats::c4gv::EncodeOptions;
 use futures_util::StreamExt;
 use serde::Deserialize;
 use serde_json::Value;

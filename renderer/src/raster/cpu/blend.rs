@@ -6,7 +6,8 @@
 use super::TILE;
 use super::bin::TileGrid;
 use super::project::Splat;
-use crate::raster::{ALPHA_MAX, ALPHA_MIN, Footprint, Image, SIGMA_EXTENT, TRANSMITTANCE_MIN};
+use crate::raster::{ALPHA_MAX, ALPHA_MIN, Image, SIGMA_EXTENT, TRANSMITTANCE_MIN};
+use c4g_scene::Footprint;
 
 /// The planes of one row of tiles (`TILE` pixel rows), for one task to write.
 pub(super) struct TileRow<'a> {

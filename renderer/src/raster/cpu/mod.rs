@@ -37,12 +37,12 @@ use std::sync::Arc;
 use rayon::prelude::*;
 
 use super::{FeatureImage, Image, Rasterizer, RenderOptions};
-use crate::{Camera, GaussianSet, RendererError};
 use bin::{Chunks, TileGrid};
 use blend::{TileAcc, TileRow, blend_tile, d2_cut};
+use c4g_scene::{Camera, GaussianSet, SceneError};
 pub use pixel::PixelWeight;
-// The 3DGS footprint's rule, for the differentiable render of `crate::align`.
-pub(crate) use project::tiles_3dgs;
+// The 3DGS footprint's rule, for the differentiable render of `c4g_analysis::align`.
+pub use project::tiles_3dgs;
 use project::{Splat, View};
 
 /// Tile edge in pixels.
@@ -82,12 +82,12 @@ impl CpuRasterizer {
     }
 
     /// A rasterizer with its own pool of `threads` threads (0: as many as cores).
-    pub fn with_threads(threads: usize) -> Result<Self, RendererError> {
+    pub fn with_threads(threads: usize) -> Result<Self, SceneError> {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .thread_name(|i| format!("c4g-raster-{i}"))
             .build()
-            .map_err(|e| RendererError::ThreadPool(e.to_string()))?;
+            .map_err(|e| SceneError::ThreadPool(e.to_string()))?;
         Ok(Self {
             pool: Some(Arc::new(pool)),
             ..Self::default()
@@ -106,13 +106,13 @@ impl CpuRasterizer {
     /// pixel fully and in front of everything contributes 1). Removing one Gaussian changes no
     /// pixel of a render with colours and background in [0, 1] by more than its weight there, so
     /// its contribution bounds the change it makes to the image's sum of absolute differences,
-    /// per channel (up to the transmittance floor's early stop). See [`crate::pruning`].
+    /// per channel (up to the transmittance floor's early stop). See [`c4g_analysis::pruning`].
     pub fn render_with_contributions(
         &self,
         gaussians: &GaussianSet,
         camera: &Camera,
         options: &RenderOptions,
-    ) -> Result<(Image, Vec<f32>), RendererError> {
+    ) -> Result<(Image, Vec<f32>), SceneError> {
         let (image, sums) = self.run(gaussians, camera, options, true)?;
         Ok((image, sums.unwrap_or_default()))
     }
@@ -126,7 +126,7 @@ impl CpuRasterizer {
         camera: &Camera,
         options: &RenderOptions,
         pixels: &[(u32, u32)],
-    ) -> Result<Vec<Vec<PixelWeight>>, RendererError> {
+    ) -> Result<Vec<Vec<PixelWeight>>, SceneError> {
         options.validate()?;
         Ok(pixel::pixel_weights(gaussians, camera, options, pixels))
     }
@@ -137,10 +137,10 @@ impl CpuRasterizer {
         camera: &Camera,
         options: &RenderOptions,
         contributions: bool,
-    ) -> Result<(Image, Option<Vec<f32>>), RendererError> {
+    ) -> Result<(Image, Option<Vec<f32>>), SceneError> {
         options.validate()?;
         if u32::try_from(gaussians.len()).is_err() {
-            return Err(RendererError::InvalidRenderOptions(format!(
+            return Err(SceneError::InvalidRenderOptions(format!(
                 "{} Gaussians are more than one render can index",
                 gaussians.len()
             )));
@@ -159,7 +159,7 @@ impl Rasterizer for CpuRasterizer {
         gaussians: &GaussianSet,
         camera: &Camera,
         options: &RenderOptions,
-    ) -> Result<Image, RendererError> {
+    ) -> Result<Image, SceneError> {
         Ok(self.run(gaussians, camera, options, false)?.0)
     }
 }

@@ -10,7 +10,7 @@
 use super::blend::d2_cut;
 use super::project::{Splat, View};
 use crate::raster::{ALPHA_MAX, ALPHA_MIN, RenderOptions, TRANSMITTANCE_MIN};
-use crate::{Camera, GaussianSet};
+use c4g_scene::{Camera, GaussianSet};
 
 /// A Gaussian's share of a pixel.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -9,13 +9,13 @@ use glam::{DMat3, DQuat, DVec3};
 
 use super::TILE;
 use crate::raster::{
-    ALPHA_MIN, DISCRIMINANT_FLOOR_3DGS, EPS2D, FOV_CLAMP, Footprint, RenderOptions, SIGMA_EXTENT,
-    TILE_3DGS,
+    ALPHA_MIN, DISCRIMINANT_FLOOR_3DGS, EPS2D, FOV_CLAMP, RenderOptions, SIGMA_EXTENT, TILE_3DGS,
 };
+use c4g_scene::Footprint;
 
 // The 3DGS footprint's tiles are binned as they are: one of ours is one of theirs.
 const _: () = assert!(TILE == TILE_3DGS);
-use crate::{Camera, GaussianSet};
+use c4g_scene::{Camera, GaussianSet};
 
 /// A Gaussian as the pixels see it.
 #[derive(Debug, Clone, Copy)]
@@ -201,8 +201,8 @@ impl View {
 /// The pixels (inclusive ranges along x and y, inside the image) of the 3DGS tiles of a splat
 /// centred at `centre` whose covariance is `[[mxx + eps, mxy], [mxy, myy + eps]]`, in f64;
 /// `None` when the tile range is empty. The rule is `super::super`'s (`Footprint::Tiles3dgs`);
-/// camera alignment's differentiable render (`crate::align`) reaches pixels by it too.
-pub(crate) fn tiles_3dgs(
+/// camera alignment's differentiable render (`c4g_analysis::align`) reaches pixels by it too.
+pub fn tiles_3dgs(
     centre: [f64; 2],
     [mxx, mxy, myy]: [f64; 3],
     eps: f64,

@@ -7,12 +7,12 @@
 //! large a scene or image one pass can hold, and the rasterizer plans around whatever it gets.
 //!
 //! wgpu reports most failures through error scopes rather than return values; [`Gpu::scoped`]
-//! turns whatever a block of GPU work raised into one [`RendererError::Gpu`].
+//! turns whatever a block of GPU work raised into one [`SceneError::Gpu`].
 
 use std::fmt;
 use std::sync::mpsc;
 
-use crate::RendererError;
+use c4g_scene::SceneError;
 
 /// Environment variable that picks the adapter: unset, `auto` or `any` for the fastest one;
 /// `hardware` (or `gpu`) for a hardware GPU only; `lavapipe`, `llvmpipe`, `software` or `cpu`
@@ -139,7 +139,7 @@ const NEEDED_STORAGE_BUFFERS: u32 = 7;
 
 impl Gpu {
     /// Opens the adapter `choice` names; `buffer_limit` lowers the buffer cap below the device's.
-    pub fn open(choice: &AdapterChoice, buffer_limit: Option<u64>) -> Result<Self, RendererError> {
+    pub fn open(choice: &AdapterChoice, buffer_limit: Option<u64>) -> Result<Self, SceneError> {
         let backends = wgpu::Backends::PRIMARY.with_env();
         let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
             backends,
@@ -160,7 +160,7 @@ impl Gpu {
             } else {
                 format!("found {}", found.join("; "))
             };
-            return Err(RendererError::GpuUnavailable(format!(
+            return Err(SceneError::GpuUnavailable(format!(
                 "none matches {ADAPTER_ENV}={choice} with compute support: {seen}"
             )));
         };
@@ -172,7 +172,7 @@ impl Gpu {
             required_limits: limits.clone(),
             ..Default::default()
         }))
-        .map_err(|e| RendererError::Gpu(format!("cannot open {}: {e}", info.name)))?;
+        .map_err(|e| SceneError::Gpu(format!("cannot open {}: {e}", info.name)))?;
 
         let device_cap = limits
             .max_storage_buffer_binding_size
@@ -190,9 +190,9 @@ impl Gpu {
     }
 
     /// A grid of at least `workgroups` workgroups, folded into 2D past the per-dimension limit.
-    pub fn grid(&self, workgroups: u32) -> Result<Grid, RendererError> {
+    pub fn grid(&self, workgroups: u32) -> Result<Grid, SceneError> {
         fold_grid(workgroups, self.max_groups).ok_or_else(|| {
-            RendererError::Gpu(format!(
+            SceneError::Gpu(format!(
                 "{workgroups} workgroups exceed the device's {0}×{0} grid",
                 self.max_groups
             ))
@@ -201,10 +201,7 @@ impl Gpu {
 
     /// Runs `work` with error scopes around it: any validation, out-of-memory or internal error it
     /// raised becomes the result (it explains a failure of `work` better than `work` can).
-    pub fn scoped<T>(
-        &self,
-        work: impl FnOnce() -> Result<T, RendererError>,
-    ) -> Result<T, RendererError> {
+    pub fn scoped<T>(&self, work: impl FnOnce() -> Result<T, SceneError>) -> Result<T, SceneError> {
         let internal = self.device.push_error_scope(wgpu::ErrorFilter::Internal);
         let memory = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -215,17 +212,17 @@ impl Gpu {
             pollster::block_on(internal.pop()),
         ];
         match errors.into_iter().flatten().next() {
-            Some(error) => Err(RendererError::Gpu(error.to_string())),
+            Some(error) => Err(SceneError::Gpu(error.to_string())),
             None => result,
         }
     }
 
     /// Waits for the queue to finish what was submitted.
-    pub fn wait(&self) -> Result<(), RendererError> {
+    pub fn wait(&self) -> Result<(), SceneError> {
         self.device
             .poll(wgpu::PollType::wait_indefinitely())
             .map(|_| ())
-            .map_err(|e| RendererError::Gpu(format!("waiting for the GPU: {e}")))
+            .map_err(|e| SceneError::Gpu(format!("waiting for the GPU: {e}")))
     }
 
     /// Maps `buffer[..size]` (a MAP_READ buffer whose copies were submitted) and hands its bytes
@@ -235,7 +232,7 @@ impl Gpu {
         buffer: &wgpu::Buffer,
         size: u64,
         read: impl FnOnce(&[u8]) -> T,
-    ) -> Result<T, RendererError> {
+    ) -> Result<T, SceneError> {
         let (sender, receiver) = mpsc::channel();
         buffer.map_async(wgpu::MapMode::Read, ..size, move |result| {
             // The receiver outlives this callback: it waits below.
@@ -244,12 +241,12 @@ impl Gpu {
         self.wait()?;
         receiver
             .recv()
-            .map_err(|e| RendererError::Gpu(format!("read-back never completed: {e}")))?
-            .map_err(|e| RendererError::Gpu(format!("cannot map a read-back buffer: {e}")))?;
+            .map_err(|e| SceneError::Gpu(format!("read-back never completed: {e}")))?
+            .map_err(|e| SceneError::Gpu(format!("cannot map a read-back buffer: {e}")))?;
         let value = {
             let view = buffer
                 .get_mapped_range(..size)
-                .map_err(|e| RendererError::Gpu(format!("cannot view a read-back buffer: {e}")))?;
+                .map_err(|e| SceneError::Gpu(format!("cannot view a read-back buffer: {e}")))?;
             read(&view)
         };
         buffer.unmap();

@@ -17,7 +17,7 @@
 
 use rayon::prelude::*;
 
-use crate::{Camera, GaussianSet, RendererError};
+use c4g_scene::{Camera, GaussianSet, SceneError};
 
 use super::super::{FOV_CLAMP, FeatureImage, Footprint, Image, RenderOptions};
 use super::recorder::{Use, Work};
@@ -28,7 +28,7 @@ const TILE: u32 = 16;
 /// Invocations per workgroup of the one-dimensional kernels.
 const GROUP: u32 = 256;
 /// Floats per Gaussian in the canonical layout.
-const PARAMS: u64 = crate::CANONICAL_CHANNELS as u64;
+const PARAMS: u64 = c4g_scene::CANONICAL_CHANNELS as u64;
 /// Bytes per Gaussian of the projected splat (3 vec4).
 const SPLAT_BYTES: u64 = 48;
 /// How the kernels (`project.wgsl`'s `cam.keys.w`, `blend.wgsl`'s `p.footprint`) name a footprint.
@@ -70,10 +70,10 @@ impl Plan {
         channels: usize,
         cap: u64,
         max_groups: u32,
-    ) -> Result<Self, RendererError> {
+    ) -> Result<Self, SceneError> {
         let (tiles_x, tiles_y) = (width.div_ceil(TILE), height.div_ceil(TILE));
         let groups = u32::try_from(channels.div_ceil(4))
-            .map_err(|_| RendererError::Gpu(format!("{channels} feature channels")))?;
+            .map_err(|_| SceneError::Gpu(format!("{channels} feature channels")))?;
         // Read-back packs the band's buffers with padding of up to 16 bytes each.
         let per_row = u64::from(width)
             * u64::from(TILE)
@@ -83,13 +83,13 @@ impl Plan {
             .min(u64::from(tiles_y))
             .min(u64::from(max_groups)) as u32;
         if tiles_x > max_groups {
-            return Err(RendererError::Gpu(format!(
+            return Err(SceneError::Gpu(format!(
                 "a {width}-pixel-wide image has {tiles_x} tiles a row, more than the {max_groups} \
                  workgroups this device dispatches along one side"
             )));
         }
         if band_rows == 0 {
-            return Err(RendererError::Gpu(format!(
+            return Err(SceneError::Gpu(format!(
                 "a {width}-pixel-wide image with {channels} feature channels needs {per_row} bytes \
                  per row of tiles, more than the {cap} this device binds"
             )));
@@ -168,7 +168,7 @@ pub(super) fn render(
     set: &GaussianSet,
     camera: &Camera,
     options: &RenderOptions,
-) -> Result<Image, RendererError> {
+) -> Result<Image, SceneError> {
     let features = set.features().filter(|_| options.features);
     let plan = Plan::new(
         camera.width(),
@@ -192,13 +192,13 @@ pub(super) fn render(
 }
 
 /// The set's size, checked against what the device can hold.
-fn gaussian_count(work: &Work, set: &GaussianSet) -> Result<u32, RendererError> {
+fn gaussian_count(work: &Work, set: &GaussianSet) -> Result<u32, SceneError> {
     let cap = work.gpu.buffer_cap;
     // The canonical parameters are the largest per-Gaussian buffer.
     let most = cap / (PARAMS * 4).max(SPLAT_BYTES);
     match u32::try_from(set.len()) {
         Ok(n) if u64::from(n) <= most => Ok(n),
-        _ => Err(RendererError::Gpu(format!(
+        _ => Err(SceneError::Gpu(format!(
             "{} Gaussians are more than the {most} this device holds in one buffer of {cap} bytes",
             set.len()
         ))),
@@ -213,7 +213,7 @@ fn project_and_sort(
     options: &RenderOptions,
     plan: &Plan,
     n: u32,
-) -> Result<FrameBuffers, RendererError> {
+) -> Result<FrameBuffers, SceneError> {
     let count = u64::from(n);
     let params = work.buffer("gaussians", 0, count * PARAMS * 4, Use::Storage)?;
     work.gpu
@@ -292,7 +292,7 @@ fn blend_band(
     buffers: &FrameBuffers,
     n: u32,
     footprint: Footprint,
-) -> Result<bool, RendererError> {
+) -> Result<bool, SceneError> {
     let mut first = 0;
     let mut blended = false;
     while first < n {
@@ -323,7 +323,7 @@ fn count_pairs(
     buffers: &FrameBuffers,
     first: u32,
     len: u32,
-) -> Result<(u32, [u32; 8]), RendererError> {
+) -> Result<(u32, [u32; 8]), SceneError> {
     let grid = work.gpu.grid(len.div_ceil(GROUP))?;
     let params = [first, len, band.row0, band.rows, plan.tiles_x, 0, grid.x, 0];
     let kernels = work.kernels;
@@ -345,7 +345,7 @@ fn chunk_that_fits(
     buffers: &FrameBuffers,
     len: u32,
     pair_cap: u32,
-) -> Result<(u32, u32), RendererError> {
+) -> Result<(u32, u32), SceneError> {
     let offsets = work.read(&[(&buffers.counts, u64::from(len) * 4)], |bytes| {
         u32s(bytes[0])
     })??;
@@ -366,7 +366,7 @@ fn bin_chunk(
     count_params: [u32; 8],
     take: u32,
     pairs: u32,
-) -> Result<Pairs, RendererError> {
+) -> Result<Pairs, SceneError> {
     let bytes = u64::from(pairs) * 4;
     let emitted = Pairs {
         keys: work.buffer("pair tiles", 0, bytes, Use::Storage)?,
@@ -419,7 +419,7 @@ fn blend_chunk(
     sorted: &Pairs,
     first_chunk: bool,
     footprint: Footprint,
-) -> Result<(), RendererError> {
+) -> Result<(), SceneError> {
     let grid = super::device::Grid {
         x: plan.tiles_x,
         y: band.rows,
@@ -477,7 +477,7 @@ fn read_band(
     buffers: &FrameBuffers,
     options: &RenderOptions,
     image: &mut Image,
-) -> Result<(), RendererError> {
+) -> Result<(), SceneError> {
     let pixels = band.pixels(plan);
     let groups = plan.groups as usize;
     let mut sources = vec![
@@ -624,22 +624,22 @@ fn camera_uniform(
     words
 }
 
-fn floats(bytes: &[u8]) -> Result<&[f32], RendererError> {
+fn floats(bytes: &[u8]) -> Result<&[f32], SceneError> {
     bytemuck::try_cast_slice(bytes)
-        .map_err(|e| RendererError::Gpu(format!("read-back of {} bytes: {e}", bytes.len())))
+        .map_err(|e| SceneError::Gpu(format!("read-back of {} bytes: {e}", bytes.len())))
 }
 
-fn u32s(bytes: &[u8]) -> Result<Vec<u32>, RendererError> {
+fn u32s(bytes: &[u8]) -> Result<Vec<u32>, SceneError> {
     bytemuck::try_cast_slice(bytes)
         .map(<[u32]>::to_vec)
-        .map_err(|e| RendererError::Gpu(format!("read-back of {} bytes: {e}", bytes.len())))
+        .map_err(|e| SceneError::Gpu(format!("read-back of {} bytes: {e}", bytes.len())))
 }
 
-fn first_u32(bytes: &[u8]) -> Result<u32, RendererError> {
+fn first_u32(bytes: &[u8]) -> Result<u32, SceneError> {
     u32s(bytes)?
         .first()
         .copied()
-        .ok_or_else(|| RendererError::Gpu("empty read-back".to_owned()))
+        .ok_or_else(|| SceneError::Gpu("empty read-back".to_owned()))
 }
 
 #[cfg(test)]

@@ -4,7 +4,7 @@
 //! storage buffers in the order [`Recorder::dispatch`](super::recorder::Recorder::dispatch)
 //! takes them), so a dispatch binds exactly the buffers its entry point uses and nothing else.
 
-use crate::RendererError;
+use c4g_scene::SceneError;
 
 use super::device::Gpu;
 
@@ -41,7 +41,7 @@ pub(super) struct Kernels {
 }
 
 impl Kernels {
-    pub fn new(gpu: &Gpu) -> Result<Self, RendererError> {
+    pub fn new(gpu: &Gpu) -> Result<Self, SceneError> {
         gpu.scoped(|| {
             let project = module(gpu, "project", include_str!("project.wgsl"));
             let scan = module(gpu, "scan", include_str!("scan.wgsl"));

@@ -36,7 +36,7 @@ use std::sync::Mutex;
 pub use device::{ADAPTER_ENV, AdapterChoice, AdapterDescription};
 
 use super::{Image, Rasterizer, RenderOptions};
-use crate::{Camera, GaussianSet, RendererError};
+use c4g_scene::{Camera, GaussianSet, SceneError};
 use device::Gpu;
 use kernels::Kernels;
 use recorder::{Pool, Work};
@@ -77,13 +77,13 @@ impl GpuRasterizer {
     /// Opens the adapter [`ADAPTER_ENV`] names (by default the fastest one, falling back to a
     /// software adapter).
     ///
-    /// Fails with [`RendererError::GpuUnavailable`] when there is no such adapter.
-    pub fn new() -> Result<Self, RendererError> {
+    /// Fails with [`SceneError::GpuUnavailable`] when there is no such adapter.
+    pub fn new() -> Result<Self, SceneError> {
         Self::with_options(GpuOptions::from_env())
     }
 
     /// Opens the adapter `options` names.
-    pub fn with_options(options: GpuOptions) -> Result<Self, RendererError> {
+    pub fn with_options(options: GpuOptions) -> Result<Self, SceneError> {
         let gpu = Gpu::open(&options.adapter, options.max_buffer_bytes)?;
         let kernels = Kernels::new(&gpu)?;
         Ok(Self {
@@ -119,7 +119,7 @@ impl Rasterizer for GpuRasterizer {
         gaussians: &GaussianSet,
         camera: &Camera,
         options: &RenderOptions,
-    ) -> Result<Image, RendererError> {
+    ) -> Result<Image, SceneError> {
         options.validate()?;
         // The pool only caches buffers: one left behind by a panicking render is still usable.
         let mut pool = self.pool.lock().unwrap_or_else(|e| e.into_inner());

@@ -13,7 +13,7 @@ use std::collections::HashMap;
 
 use wgpu::util::DeviceExt;
 
-use crate::RendererError;
+use c4g_scene::SceneError;
 
 use super::device::{Gpu, Grid};
 use super::kernels::{Kernel, Kernels};
@@ -64,7 +64,7 @@ impl<'k> Work<'k> {
         index: usize,
         bytes: u64,
         usage: Use,
-    ) -> Result<wgpu::Buffer, RendererError> {
+    ) -> Result<wgpu::Buffer, SceneError> {
         self.pool.get(self.gpu, name, index, bytes, usage)
     }
 
@@ -178,7 +178,7 @@ impl<'k> Work<'k> {
         &mut self,
         sources: &[(&wgpu::Buffer, u64)],
         read: impl FnOnce(&[&[u8]]) -> T,
-    ) -> Result<T, RendererError> {
+    ) -> Result<T, SceneError> {
         let total: u64 = sources
             .iter()
             .map(|(_, bytes)| bytes.next_multiple_of(16))
@@ -251,10 +251,10 @@ impl Pool {
         index: usize,
         bytes: u64,
         usage: Use,
-    ) -> Result<wgpu::Buffer, RendererError> {
+    ) -> Result<wgpu::Buffer, SceneError> {
         let bytes = bytes.max(16).next_multiple_of(16);
         if bytes > gpu.buffer_cap {
-            return Err(RendererError::Gpu(format!(
+            return Err(SceneError::Gpu(format!(
                 "buffer {name} needs {bytes} bytes, more than the {} this device binds",
                 gpu.buffer_cap
             )));

@@ -6,7 +6,7 @@
 //! 100), tile keys count the tiles of one band. Stability is the point: sorting the (tile,
 //! Gaussian) pairs by tile alone keeps the depth order they were emitted in.
 
-use crate::RendererError;
+use c4g_scene::SceneError;
 
 use super::recorder::{Use, Work};
 
@@ -32,7 +32,7 @@ const SCAN_LEVELS: [&str; 8] = [
 pub(super) struct Total(pub wgpu::Buffer);
 
 /// Scans `data[..len]` in place to its exclusive prefix sums (saturating at u32::MAX).
-pub(super) fn scan(work: &mut Work, data: &wgpu::Buffer, len: u32) -> Result<Total, RendererError> {
+pub(super) fn scan(work: &mut Work, data: &wgpu::Buffer, len: u32) -> Result<Total, SceneError> {
     scan_level(work, data, len, 0)
 }
 
@@ -41,10 +41,10 @@ fn scan_level(
     data: &wgpu::Buffer,
     len: u32,
     level: usize,
-) -> Result<Total, RendererError> {
+) -> Result<Total, SceneError> {
     let blocks = len.div_ceil(SCAN_BLOCK).max(1);
     let name = SCAN_LEVELS.get(level).ok_or_else(|| {
-        RendererError::Gpu(format!("a scan of {len} elements is deeper than expected"))
+        SceneError::Gpu(format!("a scan of {len} elements is deeper than expected"))
     })?;
     let sums = work.buffer(name, 0, u64::from(blocks) * 4, Use::Storage)?;
     let grid = work.gpu.grid(blocks)?;
@@ -74,7 +74,7 @@ pub(super) fn radix_sort(
     spare: Pairs,
     len: u32,
     bits: u32,
-) -> Result<Pairs, RendererError> {
+) -> Result<Pairs, SceneError> {
     let (mut from, mut to) = (data, spare);
     if len < 2 {
         return Ok(from);
