@@ -1,7 +1,7 @@
-//! Reads a C4GV stream (argv[1]) with the renderer's decoder and writes its sets as C4GS f32
+//! Reads a C4GV stream (argv[1]) with the formats crate's decoder and writes its sets as C4GS f32
 //! (argv[2]): the reference the Python decoder is compared with byte for byte.
 
-use c4g_renderer::formats::{c4gs, c4gv};
+use c4g_formats::{c4gs, c4gv};
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
