@@ -9,7 +9,9 @@ use axum::response::{IntoResponse, Response};
 use sha2::{Digest, Sha256};
 use subtle::ConstantTimeEq;
 
-use crate::{AppState, ServiceError};
+use crate::AppState;
+use crate::error::{ErrorReply, status};
+use c4g_service::ServiceError;
 
 /// The configured key, kept only as its hash.
 #[derive(Clone)]
@@ -55,9 +57,9 @@ pub async fn require_key(State(state): State<AppState>, request: Request, next: 
         Some(key) if !key.admits(request.headers()) => {
             metrics::counter!("c4g_rejected_total", "reason" => "unauthorized").increment(1);
             if crate::grpc::is_grpc(request.headers()) {
-                tonic::Status::from(ServiceError::Unauthorized).into_http()
+                status(ServiceError::Unauthorized).into_http()
             } else {
-                ServiceError::Unauthorized.into_response()
+                ErrorReply(ServiceError::Unauthorized).into_response()
             }
         }
         _ => next.run(request).await,

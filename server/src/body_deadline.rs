@@ -19,7 +19,9 @@ use axum::response::{IntoResponse, Response};
 use http_body_util::{BodyExt, StreamBody};
 use tokio::time::Instant;
 
-use crate::ServiceError;
+use c4g_service::ServiceError;
+
+use crate::error::{ErrorReply, status};
 
 /// `router` with every request body held to `limit`.
 pub fn layer(router: Router, limit: Duration) -> Router {
@@ -38,7 +40,7 @@ async fn bound(limit: Duration, request: Request, next: Next) -> Response {
     // Over REST the handler saw a body that broke off; the client hears why. A gRPC handler
     // already answered with the status the body's error carries.
     if expired.load(Ordering::SeqCst) && !grpc {
-        return timed_out(limit).into_response();
+        return ErrorReply(timed_out(limit)).into_response();
     }
     response
 }
@@ -73,7 +75,7 @@ fn with_deadline(
                     let error = timed_out(limit);
                     // tonic finds a Status in an error's sources and answers with it.
                     let error = if grpc {
-                        axum::Error::new(tonic::Status::from(error))
+                        axum::Error::new(status(error))
                     } else {
                         axum::Error::new(error)
                     };

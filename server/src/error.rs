@@ -2,6 +2,9 @@
 //! JSON body `{"error": ..., "kind": ...}`, and a gRPC code with the message and a
 //! `c4g-error-kind` metadata entry holding the same kind. Both matches are exhaustive, so a new
 //! kind does not compile until each transport has a status for it.
+//!
+//! [`ServiceError`] is the core's (`c4g-service` knows no transport), so REST answers it through
+//! [`ErrorReply`] and gRPC through [`status`]: one conversion each, both here.
 
 use axum::Json;
 use axum::http::{HeaderValue, StatusCode, header};
@@ -9,7 +12,7 @@ use axum::response::{IntoResponse, Response};
 use serde_json::json;
 use tonic::Code;
 
-use crate::service_error::{ServiceError, ServiceErrorKind};
+use c4g_service::{ServiceError, ServiceErrorKind};
 
 /// The gRPC metadata entry that carries the error kind.
 pub const GRPC_KIND_KEY: &str = "c4g-error-kind";
@@ -65,16 +68,28 @@ fn log(error: &ServiceError, kind: ServiceErrorKind) {
     }
 }
 
-impl IntoResponse for ServiceError {
+/// A [`ServiceError`] as a REST handler answers it: handlers return `Result<_, ErrorReply>`, and
+/// `?` turns the core's errors into it.
+#[derive(Debug)]
+pub struct ErrorReply(pub ServiceError);
+
+impl From<ServiceError> for ErrorReply {
+    fn from(error: ServiceError) -> Self {
+        Self(error)
+    }
+}
+
+impl IntoResponse for ErrorReply {
     fn into_response(self) -> Response {
-        let kind = self.kind();
-        log(&self, kind);
+        let Self(error) = self;
+        let kind = error.kind();
+        log(&error, kind);
         let mut response = (
             http_status(kind),
-            Json(json!({ "error": self.to_string(), "kind": kind.name() })),
+            Json(json!({ "error": error.to_string(), "kind": kind.name() })),
         )
             .into_response();
-        if let Some(after) = self.retry_after() {
+        if let Some(after) = error.retry_after() {
             response.headers_mut().insert(
                 header::RETRY_AFTER,
                 HeaderValue::from(after.as_secs().max(1)),
@@ -84,21 +99,32 @@ impl IntoResponse for ServiceError {
     }
 }
 
-impl From<ServiceError> for tonic::Status {
-    fn from(error: ServiceError) -> Self {
-        let kind = error.kind();
-        log(&error, kind);
-        let mut status = tonic::Status::new(grpc_code(kind), error.to_string());
-        status.metadata_mut().insert(
-            GRPC_KIND_KEY,
-            tonic::metadata::MetadataValue::from_static(kind.name()),
-        );
-        if let Some(after) = error.retry_after()
-            && let Ok(value) = after.as_secs().max(1).to_string().parse()
-        {
-            status.metadata_mut().insert("retry-after", value);
-        }
-        status
+/// A [`ServiceError`] as a gRPC method answers it (`.map_err(status)`).
+pub fn status(error: ServiceError) -> tonic::Status {
+    let kind = error.kind();
+    log(&error, kind);
+    let mut status = tonic::Status::new(grpc_code(kind), error.to_string());
+    status.metadata_mut().insert(
+        GRPC_KIND_KEY,
+        tonic::metadata::MetadataValue::from_static(kind.name()),
+    );
+    if let Some(after) = error.retry_after()
+        && let Ok(value) = after.as_secs().max(1).to_string().parse()
+    {
+        status.metadata_mut().insert("retry-after", value);
+    }
+    status
+}
+
+/// [`status`] as a method, for a gRPC method's `return Err(error.into_status())`.
+pub trait IntoStatus {
+    /// The error as its gRPC status.
+    fn into_status(self) -> tonic::Status;
+}
+
+impl IntoStatus for ServiceError {
+    fn into_status(self) -> tonic::Status {
+        status(self)
     }
 }
 
@@ -228,28 +254,28 @@ mod tests {
 
     #[test]
     fn grpc_refusals_carry_the_kind_and_the_retry_hint() {
-        let status = tonic::Status::from(ServiceError::Overloaded {
+        let refusal = status(ServiceError::Overloaded {
             retry_after: Duration::from_secs(3),
         });
-        assert_eq!(status.code(), Code::Unavailable);
-        let metadata = status.metadata();
+        assert_eq!(refusal.code(), Code::Unavailable);
+        let metadata = refusal.metadata();
         assert_eq!(metadata.get(GRPC_KIND_KEY).unwrap(), "overloaded");
         assert_eq!(metadata.get("retry-after").unwrap(), "3");
-        let status = tonic::Status::from(ServiceError::invalid("bad times"));
-        assert_eq!(status.code(), Code::InvalidArgument);
-        assert_eq!(status.message(), "bad times");
+        let refusal = status(ServiceError::invalid("bad times"));
+        assert_eq!(refusal.code(), Code::InvalidArgument);
+        assert_eq!(refusal.message(), "bad times");
         assert_eq!(
-            status.metadata().get(GRPC_KIND_KEY).unwrap(),
+            refusal.metadata().get(GRPC_KIND_KEY).unwrap(),
             "invalid_input"
         );
     }
 
     #[test]
     fn rest_errors_answer_json_with_the_kind() {
-        let response = ServiceError::NotFound("no clip \"x\"".into()).into_response();
+        let response = ErrorReply(ServiceError::NotFound("no clip \"x\"".into())).into_response();
         assert_eq!(response.status(), StatusCode::NOT_FOUND);
         assert!(response.headers().get(header::RETRY_AFTER).is_none());
-        let response = ServiceError::NotReady.into_response();
+        let response = ErrorReply(ServiceError::NotReady).into_response();
         assert_eq!(response.status(), StatusCode::SERVICE_UNAVAILABLE);
         assert_eq!(response.headers().get(header::RETRY_AFTER).unwrap(), "1");
     }
@@ -260,13 +286,13 @@ mod tests {
         let error = ServiceError::storage("cannot store clip abc", &full);
         assert_eq!(error.kind(), ServiceErrorKind::InsufficientStorage);
         assert!(error.to_string().contains("disk is full"), "{error}");
-        let response = error.into_response();
+        let response = ErrorReply(error).into_response();
         assert_eq!(response.status(), StatusCode::INSUFFICIENT_STORAGE);
         assert!(response.headers().get(header::RETRY_AFTER).is_none());
-        let status = tonic::Status::from(ServiceError::storage("x", &full));
-        assert_eq!(status.code(), Code::ResourceExhausted);
+        let refusal = status(ServiceError::storage("x", &full));
+        assert_eq!(refusal.code(), Code::ResourceExhausted);
         assert_eq!(
-            status.metadata().get(GRPC_KIND_KEY).unwrap(),
+            refusal.metadata().get(GRPC_KIND_KEY).unwrap(),
             "insufficient_storage"
         );
         let denied = std::io::Error::from(std::io::ErrorKind::PermissionDenied);

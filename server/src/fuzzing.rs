@@ -27,10 +27,13 @@ use http_body_util::BodyExt;
 use prost::Message;
 use tower::ServiceExt;
 
-use crate::config::{Config, Limits};
-use crate::intake::{IntakeOptions, Media, MediaKind, images, sniff, validate_options};
-use crate::service::Service;
-use crate::{AppState, ServiceError, ServiceErrorKind};
+use crate::AppState;
+use c4g_service::clips::intake::{
+    IntakeOptions, Media, MediaKind, images, sniff, validate_options,
+};
+use c4g_service::config::{Config, Limits};
+use c4g_service::service::Service;
+use c4g_service::{ServiceError, ServiceErrorKind};
 
 /// Limits small enough that one input is cheap, as an operator would set them on a small box.
 const SETTINGS: [&str; 16] = [

@@ -42,39 +42,15 @@
 
 mod api;
 mod auth;
-mod batching;
 pub mod body_deadline;
-mod camera;
-mod camera_scale;
-pub mod config;
 mod error;
-mod exports;
-pub mod faults;
-mod features;
 #[cfg(feature = "fuzzing")]
 pub mod fuzzing;
 mod grpc;
-mod image_formats;
-pub mod intake;
-pub mod jobs;
-mod keyframes;
 pub mod metrics;
-mod pruning;
-mod quality;
-mod recovery;
-mod refine;
-mod renderer;
-pub mod service;
-mod service_error;
-mod shared_clips;
 mod state;
-pub mod store;
-mod streaming;
-mod tracking;
 mod wire;
-mod work;
 mod workers;
 
 pub use api::router;
-pub use service_error::{ServiceError, ServiceErrorKind};
 pub use state::AppState;

@@ -5,9 +5,9 @@ use std::io::IsTerminal;
 use std::process::ExitCode;
 
 use c4g_engine::Engine;
-use c4g_server::config::Config;
-use c4g_server::service::Service;
 use c4g_server::{AppState, router};
+use c4g_service::config::Config;
+use c4g_service::service::Service;
 use clap::Parser;
 use tracing_subscriber::EnvFilter;
 
@@ -77,7 +77,7 @@ async fn serve() -> ExitCode {
 }
 
 async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
-    c4g_server::faults::arm(&config.fault_pause)?;
+    c4g_service::faults::arm(&config.fault_pause)?;
     let state = AppState::new(config.clone(), c4g_server::metrics::install());
     let listener = tokio::net::TcpListener::bind(config.listen).await?;
     // Printed on stdout so scripts and tests can find a port chosen by the OS.
@@ -132,7 +132,7 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
                         Ok(n) => tracing::info!(jobs = n, "deleted jobs past their retention"),
                         Err(e) => tracing::warn!("cannot delete old jobs: {e}"),
                     }
-                    let videos = c4g_server::jobs::prune_videos(&service.job_videos, age);
+                    let videos = c4g_service::jobs::prune_videos(&service.job_videos, age);
                     if videos > 0 {
                         tracing::info!(videos, "deleted refined videos past the job retention");
                     }
@@ -168,7 +168,7 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
 /// The model on the device the configuration asks for: with `auto`, CUDA when it loads there,
 /// else the CPU; the configuration returned names the device it runs on.
 fn load_engine(mut config: Config) -> Result<(Engine, Config), String> {
-    use c4g_server::config::DeviceArg;
+    use c4g_service::config::DeviceArg;
     let cannot = |e: &dyn std::fmt::Display, config: &Config| {
         format!("cannot load the model {}: {e}", config.model.display())
     };

@@ -8,10 +8,10 @@ use std::sync::{Arc, OnceLock};
 use metrics_exporter_prometheus::PrometheusHandle;
 use tokio::sync::watch;
 
-use crate::ServiceError;
 use crate::auth::ApiKey;
-use crate::config::Config;
-use crate::service::Service;
+use c4g_service::ServiceError;
+use c4g_service::config::Config;
+use c4g_service::service::Service;
 
 /// Shared, cheaply cloned state of the server.
 #[derive(Clone)]

@@ -8,7 +8,7 @@ use c4g_proto::v1 as pb;
 use c4g_scene::GaussianSet;
 use serde_json::{Value, json};
 
-use crate::ServiceError;
+use c4g_service::ServiceError;
 
 /// The precision a gRPC request asks for; unspecified means `f32`.
 pub fn precision_from_proto(p: pb::Precision) -> Precision {

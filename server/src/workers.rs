@@ -7,10 +7,12 @@ use c4g_proto::v1 as pb;
 use c4g_proto::v1::jobs_server::{Jobs, JobsServer};
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::jobs::{JobState, Progress};
-use crate::refine::{WorkerModel, build_job};
-use crate::service::Service;
-use crate::{AppState, ServiceError, ServiceErrorKind};
+use crate::AppState;
+use crate::error::{IntoStatus, status};
+use c4g_service::jobs::refine::{WorkerJob, WorkerModel, build_job};
+use c4g_service::jobs::{JobState, Progress};
+use c4g_service::service::Service;
+use c4g_service::{ServiceError, ServiceErrorKind};
 
 /// Longest a worker's `Take` waits for a job.
 const MAX_WAIT: Duration = Duration::from_secs(30);
@@ -30,7 +32,7 @@ pub struct Workers {
 
 impl Workers {
     fn service(&self) -> Result<&Arc<Service>, Status> {
-        Ok(self.state.service()?)
+        Ok(self.state.service().map_err(status)?)
     }
 }
 
@@ -50,9 +52,11 @@ impl Jobs for Workers {
             return Err(ServiceError::invalid(
                 "a worker names itself and the frames, width and height its model refines",
             )
-            .into());
+            .into_status());
         }
-        let (w, h) = service.image_size(Some(request.width), Some(request.height))?;
+        let (w, h) = service
+            .image_size(Some(request.width), Some(request.height))
+            .map_err(status)?;
         let wait = Duration::from_millis(u64::from(request.wait_ms)).min(MAX_WAIT);
         loop {
             // A draining server hands out no job, and stops a worker's wait when the drain starts.
@@ -60,7 +64,7 @@ impl Jobs for Workers {
                 return Ok(Response::new(pb::TakeResponse { job: None }));
             }
             let taken = tokio::select! {
-                taken = service.jobs.take(&request.worker, wait) => taken?,
+                taken = service.jobs.take(&request.worker, wait) => taken.map_err(status)?,
                 () = self.state.drained() => None,
             };
             let Some(record) = taken else {
@@ -75,7 +79,9 @@ impl Jobs for Workers {
             match build_job(&service, &record, model).await {
                 Ok(job) => {
                     tracing::info!(job = %record.id, worker = %request.worker, attempt = record.attempt, "job taken");
-                    return Ok(Response::new(pb::TakeResponse { job: Some(job) }));
+                    return Ok(Response::new(pb::TakeResponse {
+                        job: Some(refine_job(job)),
+                    }));
                 }
                 Err(e)
                     if matches!(
@@ -88,7 +94,8 @@ impl Jobs for Workers {
                     service
                         .jobs
                         .release(&record.id, &request.worker, &e.to_string())
-                        .await?;
+                        .await
+                        .map_err(status)?;
                     return Ok(Response::new(pb::TakeResponse { job: None }));
                 }
                 Err(e) => {
@@ -104,7 +111,8 @@ impl Jobs for Workers {
                             retryable,
                             false,
                         )
-                        .await?;
+                        .await
+                        .map_err(status)?;
                 }
             }
         }
@@ -127,7 +135,8 @@ impl Jobs for Workers {
                     stage: r.stage,
                 },
             )
-            .await?;
+            .await
+            .map_err(status)?;
         Ok(Response::new(pb::ProgressResponse { cancelled }))
     }
 
@@ -141,7 +150,7 @@ impl Jobs for Workers {
             Some(pb::FinishRequest {
                 part: Some(pb::finish_request::Part::Header(h)),
             }) => h,
-            _ => return Err(ServiceError::invalid("a result starts with its header").into()),
+            _ => return Err(ServiceError::invalid("a result starts with its header").into_status()),
         };
         let mut frames = Vec::new();
         while let Some(message) = stream.message().await? {
@@ -149,7 +158,8 @@ impl Jobs for Workers {
                 Some(pb::finish_request::Part::FramePng(png)) => frames.push(png),
                 _ => {
                     return Err(
-                        ServiceError::invalid("after the header a result sends frames").into(),
+                        ServiceError::invalid("after the header a result sends frames")
+                            .into_status(),
                     );
                 }
             }
@@ -160,18 +170,21 @@ impl Jobs for Workers {
                 header.frames,
                 frames.len()
             ))
-            .into());
+            .into_status());
         }
         if let Some(bad) = frames
             .iter()
             .position(|f| !matches!(image::guess_format(f), Ok(image::ImageFormat::Png)))
         {
-            return Err(ServiceError::invalid(format!("result frame {bad} is not a PNG")).into());
+            return Err(
+                ServiceError::invalid(format!("result frame {bad} is not a PNG")).into_status(),
+            );
         }
         let record = service
             .jobs
             .finish(&header.job_id, &header.worker, frames, header.seconds)
-            .await?;
+            .await
+            .map_err(status)?;
         tracing::info!(job = %record.id, frames = record.result_frames, "job done");
         Ok(Response::new(pb::FinishResponse {}))
     }
@@ -185,7 +198,8 @@ impl Jobs for Workers {
             .service()?
             .jobs
             .fail(&r.job_id, &r.worker, &r.error, r.retryable, r.cancelled)
-            .await?;
+            .await
+            .map_err(status)?;
         // A cancellation the client asked for is the job doing as told, not a failure.
         if record.state == JobState::Cancelled {
             tracing::info!(job = %record.id, "worker reported: {}", r.error);
@@ -211,8 +225,29 @@ impl Jobs for Workers {
             .service()?
             .jobs
             .release(&r.job_id, &r.worker, why)
-            .await?;
+            .await
+            .map_err(status)?;
         tracing::info!(job = %record.id, worker = %r.worker, state = ?record.state, reason = why, "job released: its worker is stopping");
         Ok(Response::new(pb::ReleaseResponse {}))
+    }
+}
+
+/// The job in the `RefineJob` message a worker reads.
+fn refine_job(job: WorkerJob) -> pb::RefineJob {
+    pb::RefineJob {
+        job_id: job.job_id,
+        attempt: job.attempt,
+        frames: job
+            .frames
+            .into_iter()
+            .map(|(time, png)| pb::VideoFrame { time, png })
+            .collect(),
+        reactive: job.reactive,
+        params_json: job.params_json,
+        caption: job.caption,
+        negative_prompt: job.negative_prompt,
+        text_embedding: job.text_embedding,
+        text_tokens: job.text_tokens,
+        negative_embedding: job.negative_embedding,
     }
 }

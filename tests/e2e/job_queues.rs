@@ -1,4 +1,4 @@
-//! The behaviour every job store owes (`c4g_server::jobs::JobQueue`), one function per rule, run
+//! The behaviour every job store owes (`c4g_service::jobs::JobQueue`), one function per rule, run
 //! against the disk store and against PostgreSQL (a throwaway server from Debian's package,
 //! `c4g_e2e::postgres`). Each rule gets two handles on one store: for the disk store the same
 //! one twice (a replica's jobs are its own), for PostgreSQL two connections, as two replicas
@@ -14,8 +14,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use c4g_e2e::postgres::TempPostgres;
-use c4g_server::ServiceErrorKind;
-use c4g_server::jobs::{DiskJobs, JobQueue, JobRecord, JobState, PostgresJobs, Progress};
+use c4g_service::ServiceErrorKind;
+use c4g_service::jobs::{DiskJobs, JobQueue, JobRecord, JobState, PostgresJobs, Progress};
 
 /// The lease the rules run with: short, so lost workers are found quickly.
 const LEASE: Duration = Duration::from_millis(300);

@@ -11,10 +11,12 @@ use http_body_util::{BodyExt, LengthLimitError, Limited};
 use serde_json::{Value, json};
 
 use super::json::{ClipId, FrameIndex, query_pairs};
-use crate::intake::cameras::{CameraInput, parse_names};
-use crate::intake::{IntakeOptions, Media, MediaKind};
-use crate::store::ClipRecord;
-use crate::{AppState, ServiceError};
+use crate::AppState;
+use crate::error::ErrorReply;
+use c4g_service::ServiceError;
+use c4g_service::clips::intake::cameras::{CameraInput, parse_names};
+use c4g_service::clips::intake::{IntakeOptions, Media, MediaKind};
+use c4g_service::clips::record::ClipRecord;
 
 /// A clip as the API shows it.
 pub fn clip_json(record: &ClipRecord, created: Option<bool>) -> Value {
@@ -42,7 +44,7 @@ pub fn clip_json(record: &ClipRecord, created: Option<bool>) -> Value {
 pub async fn upload(
     State(state): State<AppState>,
     request: Request,
-) -> Result<Response, ServiceError> {
+) -> Result<Response, ErrorReply> {
     let service = state.service()?.clone();
     let limit = service.limits.max_body_bytes;
     let mut fields = query_pairs(request.uri().query())?;
@@ -285,7 +287,7 @@ fn is_decimal(text: &str) -> bool {
     }
 }
 
-pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ServiceError> {
+pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ErrorReply> {
     let clips: Vec<Value> = state
         .service()?
         .store
@@ -300,7 +302,7 @@ pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ServiceE
 pub async fn get(
     State(state): State<AppState>,
     ClipId(id): ClipId,
-) -> Result<Json<Value>, ServiceError> {
+) -> Result<Json<Value>, ErrorReply> {
     let service = state.service()?;
     let record = service.store.get_or_fetch(&id).await?;
     let mut clip = clip_json(&record, None);
@@ -313,7 +315,7 @@ pub async fn get(
 pub async fn delete(
     State(state): State<AppState>,
     ClipId(id): ClipId,
-) -> Result<StatusCode, ServiceError> {
+) -> Result<StatusCode, ErrorReply> {
     state.service()?.delete(&id).await?;
     Ok(StatusCode::NO_CONTENT)
 }
@@ -322,7 +324,7 @@ pub async fn frame(
     State(state): State<AppState>,
     ClipId(id): ClipId,
     FrameIndex(index): FrameIndex,
-) -> Result<Response, ServiceError> {
+) -> Result<Response, ErrorReply> {
     let png = state.service()?.context_frame_png(&id, index).await?;
     Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response())
 }

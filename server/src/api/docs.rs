@@ -11,8 +11,10 @@ use axum::http::header;
 use axum::response::{Html, IntoResponse, Response};
 use serde_json::Value;
 
-use crate::config::Limits;
-use crate::{AppState, ServiceError};
+use crate::AppState;
+use crate::error::ErrorReply;
+use c4g_service::ServiceError;
+use c4g_service::config::Limits;
 
 /// The OpenAPI 3.1 description of the REST API with the default limits (kept beside the code;
 /// tests check that it names every route and that the server holds to it).
@@ -77,13 +79,16 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
             handle.render(),
         )
             .into_response(),
-        None => ServiceError::NotFound("metrics are not recorded in this process".into())
-            .into_response(),
+        None => ErrorReply(ServiceError::NotFound(
+            "metrics are not recorded in this process".into(),
+        ))
+        .into_response(),
     }
 }
 
-pub async fn not_found() -> ServiceError {
+pub async fn not_found() -> ErrorReply {
     ServiceError::NotFound("no such endpoint: see /docs (or /openapi.json) for the API".into())
+        .into()
 }
 
 #[cfg(test)]
@@ -91,7 +96,7 @@ mod tests {
     use clap::Parser;
 
     use super::*;
-    use crate::config::Config;
+    use c4g_service::config::Config;
 
     fn marked(value: &Value, out: &mut Vec<(String, Value)>) {
         match value {

@@ -13,11 +13,12 @@ use serde::Deserialize;
 use serde_json::Value;
 
 use super::json::{self, ClipId, JsonBody};
-use crate::exports::ExportFormat;
-use crate::keyframes::KeyframesSpec;
-use crate::quality::{Preset, PruneSpec, QualitySpec};
-use crate::streaming::{Spacing, StreamRequest};
-use crate::{AppState, ServiceError};
+use crate::AppState;
+use crate::error::ErrorReply;
+use c4g_service::sets::keyframes::KeyframesSpec;
+use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
+use c4g_service::sets::streaming::{Spacing, StreamRequest};
+use c4g_service::views::exports::ExportFormat;
 
 #[derive(Debug, Clone, Copy, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -45,7 +46,7 @@ pub async fn export(
     State(state): State<AppState>,
     ClipId(id): ClipId,
     JsonBody(body): JsonBody<Value>,
-) -> Result<Response, ServiceError> {
+) -> Result<Response, ErrorReply> {
     let service = state.service()?.clone();
     json::check_body(&body, service.limits.max_times)?;
     let request: Request = json::typed(body)?;

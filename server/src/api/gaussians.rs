@@ -11,10 +11,12 @@ use serde::Deserialize;
 use serde_json::Value;
 
 use super::json::{self, ClipId, JsonBody};
-use crate::keyframes::KeyframesSpec;
-use crate::quality::{Preset, PruneSpec, QualitySpec};
+use crate::AppState;
+use crate::error::ErrorReply;
 use crate::wire::{self, Precision};
-use crate::{AppState, ServiceError};
+use c4g_service::ServiceError;
+use c4g_service::sets::keyframes::KeyframesSpec;
+use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -63,7 +65,7 @@ pub async fn decode(
     ClipId(id): ClipId,
     headers: HeaderMap,
     JsonBody(body): JsonBody<Value>,
-) -> Result<Response, ServiceError> {
+) -> Result<Response, ErrorReply> {
     let service = state.service()?;
     json::check_body(&body, service.limits.max_times)?;
     let request: GaussiansRequest = json::typed(body)?;
@@ -71,12 +73,12 @@ pub async fn decode(
         (Some(t), None) => vec![t],
         (None, Some(times)) => times,
         (Some(_), Some(_)) => {
-            return Err(ServiceError::invalid("give \"t\" or \"times\", not both"));
+            return Err(ServiceError::invalid("give \"t\" or \"times\", not both").into());
         }
         (None, None) => {
-            return Err(ServiceError::invalid(
-                "give a time: {\"t\": 0.5} or {\"times\": [..]}",
-            ));
+            return Err(
+                ServiceError::invalid("give a time: {\"t\": 0.5} or {\"times\": [..]}").into(),
+            );
         }
     };
     let format = request
@@ -86,13 +88,15 @@ pub async fn decode(
     if matches!(format, GaussianFormat::Ply | GaussianFormat::Splat) && times.len() != 1 {
         return Err(ServiceError::invalid(
             "ply and splat hold one set: ask for one time (or use json or binary)",
-        ));
+        )
+        .into());
     }
     if request.features && format == GaussianFormat::Splat {
         return Err(ServiceError::invalid(
             "the .splat format has no room for features: ask for json, binary or ply with \
              \"features\": true",
-        ));
+        )
+        .into());
     }
     let quality = QualitySpec {
         preset: request.quality,

@@ -5,15 +5,17 @@ use axum::Json;
 use axum::extract::State;
 use serde_json::{Value, json};
 
-use crate::{AppState, ServiceError};
+use crate::AppState;
+use crate::error::ErrorReply;
+use c4g_service::ServiceError;
 
 pub async fn health() -> Json<Value> {
     Json(json!({ "status": "ok" }))
 }
 
-pub async fn ready(State(state): State<AppState>) -> Result<Json<Value>, ServiceError> {
+pub async fn ready(State(state): State<AppState>) -> Result<Json<Value>, ErrorReply> {
     if state.is_draining() {
-        return Err(ServiceError::Draining);
+        return Err(ServiceError::Draining.into());
     }
     let service = state.service()?;
     Ok(Json(

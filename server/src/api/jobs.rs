@@ -13,16 +13,18 @@ use futures_util::Stream;
 use serde_json::{Value, json};
 
 use super::json::{self, ClipId, JobId, JsonBody};
-use crate::image_formats::encode_mp4;
-use crate::jobs::JobState;
-use crate::refine::RefineRequest;
-use crate::{AppState, ServiceError};
+use crate::AppState;
+use crate::error::ErrorReply;
+use c4g_service::ServiceError;
+use c4g_service::jobs::JobState;
+use c4g_service::jobs::refine::RefineRequest;
+use c4g_service::views::image_formats::encode_mp4;
 
 pub async fn submit(
     State(state): State<AppState>,
     ClipId(clip_id): ClipId,
     JsonBody(body): JsonBody<Value>,
-) -> Result<Response, ServiceError> {
+) -> Result<Response, ErrorReply> {
     let service = state.service()?;
     json::check_body(&body, service.limits.max_times)?;
     let request: RefineRequest = json::typed(body)?;
@@ -59,21 +61,21 @@ fn check(request: &RefineRequest, max_context_frames: usize) -> Result<(), Servi
     Ok(())
 }
 
-pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ServiceError> {
+pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ErrorReply> {
     Ok(Json(json!({ "jobs": state.service()?.jobs.list().await? })))
 }
 
 pub async fn get(
     State(state): State<AppState>,
     JobId(id): JobId,
-) -> Result<Json<Value>, ServiceError> {
+) -> Result<Json<Value>, ErrorReply> {
     Ok(Json(json!(state.service()?.jobs.get(&id).await?)))
 }
 
 pub async fn cancel(
     State(state): State<AppState>,
     JobId(id): JobId,
-) -> Result<Json<Value>, ServiceError> {
+) -> Result<Json<Value>, ErrorReply> {
     Ok(Json(json!(state.service()?.jobs.cancel(&id).await?)))
 }
 
@@ -82,7 +84,7 @@ pub async fn cancel(
 pub async fn events(
     State(state): State<AppState>,
     JobId(id): JobId,
-) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ServiceError> {
+) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ErrorReply> {
     let mut updates = state.service()?.jobs.subscribe(&id).await?;
     let drained = state.drained();
     // A draining server ends its event streams (the job goes on; a client follows it again, on
@@ -141,7 +143,7 @@ pub async fn result(
     State(state): State<AppState>,
     JobId(id): JobId,
     RawQuery(query): RawQuery,
-) -> Result<Response, ServiceError> {
+) -> Result<Response, ErrorReply> {
     let frame = result_frame(query.as_deref())?;
     let service = state.service()?.clone();
     let record = service.jobs.get(&id).await?;
@@ -149,14 +151,16 @@ pub async fn result(
         return Err(ServiceError::invalid(format!(
             "job {id} is {}: its result exists once it is done (GET /v1/jobs/{id})",
             record.state.name()
-        )));
+        ))
+        .into());
     }
     if let Some(k) = frame {
         if k >= record.result_frames {
             return Err(ServiceError::NotFound(format!(
                 "job {id} has {} refined frames (0..{})",
                 record.result_frames, record.result_frames
-            )));
+            ))
+            .into());
         }
         let png = service.jobs.result_frame(&id, k).await?;
         return Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response());

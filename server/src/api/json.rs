@@ -21,8 +21,11 @@ use bytes::Bytes;
 use serde::de::DeserializeOwned;
 use serde_json::Value;
 
-use crate::ServiceError;
-use crate::camera::{FOCAL_BOUND, SCENE_BOUND, SMALLEST_LENGTH, check_preset, within};
+use c4g_service::ServiceError;
+use c4g_service::clips::intake::cameras::{FOCAL_BOUND, SMALLEST_LENGTH};
+use c4g_service::views::camera::{SCENE_BOUND, check_preset, within};
+
+use crate::error::ErrorReply;
 
 /// Largest JSON request body, bytes (a longer one is a 413).
 pub const MAX_JSON_BYTES: usize = 2 << 20;
@@ -34,13 +37,13 @@ pub const MAX_DEPTH: usize = 16;
 pub struct JsonBody<T>(pub T);
 
 impl<S: Send + Sync, T: DeserializeOwned> FromRequest<S> for JsonBody<T> {
-    type Rejection = ServiceError;
+    type Rejection = ErrorReply;
 
     async fn from_request(request: Request, state: &S) -> Result<Self, Self::Rejection> {
         let bytes = Bytes::from_request(request, state)
             .await
             .map_err(body_error)?;
-        parse(&bytes).map(JsonBody)
+        Ok(parse(&bytes).map(JsonBody)?)
     }
 }
 
@@ -273,7 +276,7 @@ pub struct ClipId(pub String);
 pub struct JobId(pub String);
 
 impl<S: Send + Sync> FromRequestParts<S> for ClipId {
-    type Rejection = ServiceError;
+    type Rejection = ErrorReply;
 
     async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, Self::Rejection> {
         let id = first_segment(parts, state).await?;
@@ -282,13 +285,14 @@ impl<S: Send + Sync> FromRequestParts<S> for ClipId {
         } else {
             Err(ServiceError::NotFound(format!(
                 "no clip {id:?}: clip ids are 24 lowercase hex digits (GET /v1/clips lists them)"
-            )))
+            ))
+            .into())
         }
     }
 }
 
 impl<S: Send + Sync> FromRequestParts<S> for JobId {
-    type Rejection = ServiceError;
+    type Rejection = ErrorReply;
 
     async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, Self::Rejection> {
         let id = first_segment(parts, state).await?;
@@ -298,7 +302,8 @@ impl<S: Send + Sync> FromRequestParts<S> for JobId {
             Err(ServiceError::NotFound(format!(
                 "no job {id:?}: job ids are `job-` and 20 lowercase hex digits (GET /v1/jobs \
                  lists them)"
-            )))
+            ))
+            .into())
         }
     }
 }
@@ -327,7 +332,7 @@ async fn first_segment<S: Send + Sync>(
 pub struct FrameIndex(pub usize);
 
 impl<S: Send + Sync> FromRequestParts<S> for FrameIndex {
-    type Rejection = ServiceError;
+    type Rejection = ErrorReply;
 
     async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, Self::Rejection> {
         let params = axum::extract::RawPathParams::from_request_parts(parts, state)
@@ -342,6 +347,7 @@ impl<S: Send + Sync> FromRequestParts<S> for FrameIndex {
             ServiceError::NotFound(format!(
                 "no context frame {raw:?}: frames are numbered 0, 1, ..."
             ))
+            .into()
         })
     }
 }
@@ -385,10 +391,7 @@ mod tests {
         match parse::<Body>(text.as_bytes()) {
             Ok(body) => panic!("{text} was accepted as {body:?}"),
             Err(e) => {
-                assert_eq!(
-                    e.kind(),
-                    crate::service_error::ServiceErrorKind::InvalidInput
-                );
+                assert_eq!(e.kind(), c4g_service::ServiceErrorKind::InvalidInput);
                 e.to_string()
             }
         }

@@ -83,7 +83,7 @@ mod tests {
     use tower::ServiceExt;
 
     use super::*;
-    use crate::config::Config;
+    use c4g_service::config::Config;
 
     /// Every path and method `/openapi.json` documents is a route (not the JSON 404 fallback).
     #[tokio::test]

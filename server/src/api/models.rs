@@ -4,10 +4,11 @@ use axum::Json;
 use axum::extract::State;
 use serde_json::{Value, json};
 
-use crate::service::Service;
-use crate::{AppState, ServiceError};
+use crate::AppState;
+use crate::error::ErrorReply;
+use c4g_service::service::Service;
 
-pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ServiceError> {
+pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ErrorReply> {
     let service = state.service()?;
     Ok(Json(json!({ "models": [describe(service)] })))
 }

@@ -1,5 +1,5 @@
 //! `POST /v1/clips/{id}/render`: one camera at one time (PNG, raw depth or alpha, or a feature
-//! image: raw lifted features or their PCA colouring, `crate::features`), or a camera trajectory
+//! image: raw lifted features or their PCA colouring, `c4g_service::views::features`), or a camera trajectory
 //! over a time range (MP4).
 
 use axum::extract::State;
@@ -10,13 +10,15 @@ use serde::Deserialize;
 use serde_json::Value;
 
 use super::json::{self, ClipId, JsonBody};
-use crate::camera::CameraSpec;
-use crate::features::FeatureRender;
-use crate::image_formats::{ImageFormat, encode_image, encode_mp4, to_rgb8};
-use crate::keyframes::KeyframesSpec;
-use crate::quality::{Preset, PruneSpec, QualitySpec};
-use crate::service::{DEFAULT_PATH_FRAMES, PathRequest, ViewRequest};
-use crate::{AppState, ServiceError};
+use crate::AppState;
+use crate::error::ErrorReply;
+use c4g_service::ServiceError;
+use c4g_service::service::{DEFAULT_PATH_FRAMES, PathRequest, ViewRequest};
+use c4g_service::sets::keyframes::KeyframesSpec;
+use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
+use c4g_service::views::camera::CameraSpec;
+use c4g_service::views::features::FeatureRender;
+use c4g_service::views::image_formats::{ImageFormat, encode_image, encode_mp4, to_rgb8};
 
 /// Frame rate of trajectory videos when a request does not say.
 const DEFAULT_VIDEO_FPS: f64 = 12.0;
@@ -53,7 +55,7 @@ pub async fn render(
     State(state): State<AppState>,
     ClipId(id): ClipId,
     JsonBody(body): JsonBody<Value>,
-) -> Result<Response, ServiceError> {
+) -> Result<Response, ErrorReply> {
     let service = state.service()?.clone();
     json::check_body(&body, service.limits.max_times)?;
     let request: RenderRequest = json::typed(body)?;
@@ -74,7 +76,7 @@ pub async fn render(
         {
             return Err(ServiceError::invalid(
                 "frames, fps, start, end and keyframes describe a trajectory: add \"trajectory\", \"cameras\" or an input camera swept over the frames (\"camera\": {\"input\": {\"start\": …, \"end\": …}})",
-            ));
+            ).into());
         }
         let format = request.format.unwrap_or(ImageFormat::Png);
         let record = service.store.get_or_fetch(&id).await?;
@@ -115,12 +117,14 @@ pub async fn render(
     if format != ImageFormat::Mp4 {
         return Err(ServiceError::invalid(
             "a trajectory renders as mp4 over REST (gRPC RenderTrajectory streams PNG frames)",
-        ));
+        )
+        .into());
     }
     if request.t.is_some() {
         return Err(ServiceError::invalid(
             "a trajectory spans \"start\" to \"end\"; \"t\" is for a single view",
-        ));
+        )
+        .into());
     }
     let fps = request.fps.unwrap_or(DEFAULT_VIDEO_FPS);
     if !VIDEO_FPS.contains(&fps) {
@@ -128,7 +132,8 @@ pub async fn render(
             "fps must be between {} and {}, got {fps}",
             VIDEO_FPS.start(),
             VIDEO_FPS.end()
-        )));
+        ))
+        .into());
     }
     // The default frame count, within C4G_MAX_TIMES (explicit cameras are their own count).
     let frames = request.frames.or_else(|| {

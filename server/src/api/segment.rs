@@ -1,5 +1,5 @@
 //! `POST /v1/clips/{id}/segment`: the Gaussians whose lifted feature is like a clicked pixel's
-//! (or a given feature), and their masks at other times (`crate::features` says how).
+//! (or a given feature), and their masks at other times (`c4g_service::views::features` says how).
 
 use axum::Json;
 use axum::extract::State;
@@ -7,9 +7,11 @@ use serde::Deserialize;
 use serde_json::Value;
 
 use super::json::{self, ClipId, JsonBody};
-use crate::camera::CameraSpec;
-use crate::features::{Click, Segment, SegmentRequest, Selection};
-use crate::{AppState, ServiceError};
+use crate::AppState;
+use crate::error::ErrorReply;
+use c4g_service::ServiceError;
+use c4g_service::views::camera::CameraSpec;
+use c4g_service::views::features::{Click, Segment, SegmentRequest, Selection};
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -29,7 +31,7 @@ pub async fn segment(
     State(state): State<AppState>,
     ClipId(id): ClipId,
     JsonBody(body): JsonBody<Value>,
-) -> Result<Json<Segment>, ServiceError> {
+) -> Result<Json<Segment>, ErrorReply> {
     let service = state.service()?.clone();
     json::check_body(&body, service.limits.max_times)?;
     let body: SegmentBody = json::typed(body)?;
@@ -39,18 +41,21 @@ pub async fn segment(
         (Some(_), None, Some(_)) => {
             return Err(ServiceError::invalid(
                 "a click has its own time (click.t); \"t\" is for a feature selection",
-            ));
+            )
+            .into());
         }
         (Some(_), Some(_), _) => {
             return Err(ServiceError::invalid(
                 "select by a \"click\" or by a \"feature\", not both",
-            ));
+            )
+            .into());
         }
         (None, None, _) => {
             return Err(ServiceError::invalid(
                 "give a selection: {\"click\": {\"t\": s, \"x\": px, \"y\": px}} or \
                  {\"feature\": [..]}",
-            ));
+            )
+            .into());
         }
     };
     let request = SegmentRequest {

@@ -19,10 +19,11 @@ use serde::Deserialize;
 use serde_json::Value;
 
 use super::json::{self, ClipId, JsonBody};
-use crate::keyframes::KeyframesSpec;
-use crate::quality::{Preset, PruneSpec, QualitySpec};
-use crate::streaming::{Spacing, StreamRequest, check_compact};
-use crate::{AppState, ServiceError};
+use crate::AppState;
+use crate::error::ErrorReply;
+use c4g_service::sets::keyframes::KeyframesSpec;
+use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
+use c4g_service::sets::streaming::{Spacing, StreamRequest, check_compact};
 
 /// The stream's content type.
 pub const CONTENT_TYPE: &str = "application/x-c4g-stream";
@@ -48,7 +49,7 @@ pub async fn stream(
     State(state): State<AppState>,
     ClipId(id): ClipId,
     JsonBody(body): JsonBody<Value>,
-) -> Result<Response, ServiceError> {
+) -> Result<Response, ErrorReply> {
     let service = state.service()?.clone();
     json::check_body(&body, service.limits.max_times)?;
     let request: Request = json::typed(body)?;

@@ -1,5 +1,5 @@
 //! `POST /v1/clips/{id}/tracks`: where query points seen in the input frames go at other times,
-//! followed by their Gaussians or by feature matching (`crate::tracking` says how).
+//! followed by their Gaussians or by feature matching (`c4g_service::views::tracking` says how).
 
 use axum::Json;
 use axum::extract::State;
@@ -7,10 +7,11 @@ use serde::Deserialize;
 use serde_json::Value;
 
 use super::json::{self, ClipId, JsonBody};
-use crate::keyframes::KeyframesSpec;
-use crate::quality::{Preset, PruneSpec, QualitySpec};
-use crate::tracking::{TrackQuery, TrackRequest, Tracker, Tracks};
-use crate::{AppState, ServiceError};
+use crate::AppState;
+use crate::error::ErrorReply;
+use c4g_service::sets::keyframes::KeyframesSpec;
+use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
+use c4g_service::views::tracking::{TrackQuery, TrackRequest, Tracker, Tracks};
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -32,7 +33,7 @@ pub async fn tracks(
     State(state): State<AppState>,
     ClipId(id): ClipId,
     JsonBody(body): JsonBody<Value>,
-) -> Result<Json<Tracks>, ServiceError> {
+) -> Result<Json<Tracks>, ErrorReply> {
     let service = state.service()?.clone();
     json::check_body(&body, service.limits.max_times)?;
     let request: TracksRequest = json::typed(body)?;

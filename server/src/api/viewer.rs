@@ -10,7 +10,8 @@ use axum::extract::Path;
 use axum::http::header;
 use axum::response::{IntoResponse, Response};
 
-use crate::ServiceError;
+use crate::error::ErrorReply;
+use c4g_service::ServiceError;
 
 /// The page.
 const INDEX: &str = include_str!("../../viewer/index.html");
@@ -47,12 +48,12 @@ pub async fn clip_page(Path(_clip): Path<String>) -> Response {
     file(HTML, INDEX)
 }
 
-pub async fn asset(Path(name): Path<String>) -> Result<Response, ServiceError> {
+pub async fn asset(Path(name): Path<String>) -> Result<Response, ErrorReply> {
     ASSETS
         .iter()
         .find(|(file, _, _)| *file == name)
         .map(|(_, content_type, body)| file(content_type, body))
-        .ok_or_else(|| ServiceError::NotFound(format!("the viewer has no file {name:?}")))
+        .ok_or_else(|| ServiceError::NotFound(format!("the viewer has no file {name:?}")).into())
 }
 
 fn file(content_type: &'static str, body: &'static str) -> Response {
@@ -79,7 +80,7 @@ mod tests {
 
     use super::*;
     use crate::AppState;
-    use crate::config::Config;
+    use c4g_service::config::Config;
 
     async fn get(uri: &str) -> (u16, String, String) {
         let app = crate::api::router(AppState::new(Config::parse_from(["c4g-server"]), None));

@@ -1,0 +1,9 @@
+//! What was uploaded: the lowest layer of the core. An upload becomes timed context frames
+//! (`intake`), is encoded once and kept (`store`, as `record`s and features), optionally shared
+//! with other replicas (`shared`), always through crash-safe writes (`durable`).
+
+pub mod durable;
+pub mod intake;
+pub mod record;
+pub mod shared;
+pub mod store;
