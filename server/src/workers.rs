@@ -55,6 +55,7 @@ impl Jobs for Workers {
             .into_status());
         }
         let (w, h) = service
+            .views
             .image_size(Some(request.width), Some(request.height))
             .map_err(status)?;
         let wait = Duration::from_millis(u64::from(request.wait_ms)).min(MAX_WAIT);
@@ -76,7 +77,7 @@ impl Jobs for Workers {
                 width: w,
                 height: h,
             };
-            match build_job(&service, &record, model).await {
+            match build_job(&service.views, &record, model).await {
                 Ok(job) => {
                     tracing::info!(job = %record.id, worker = %request.worker, attempt = record.attempt, "job taken");
                     return Ok(Response::new(pb::TakeResponse {

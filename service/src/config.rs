@@ -177,7 +177,7 @@ pub struct Config {
     #[arg(long, env = "C4G_JOB_LEASE_S", default_value_t = 60.0)]
     pub job_lease_s: f64,
     /// How long an exact decode waits for other requests' decodes of the same clip to share its
-    /// decoder run, in milliseconds (`server/src/batching.rs`); 0 turns batching off. Unset: 2
+    /// decoder run, in milliseconds (`service/src/sets/batching.rs`); 0 turns batching off. Unset: 2
     /// with `--device cuda`, where one target leaves the GPU idle; 0 on the CPU, where a batch
     /// costs about as much per target as one at a time (and more at the official size) and the
     /// wait would only add latency.
@@ -186,7 +186,7 @@ pub struct Config {
     /// Where refinement jobs are kept: unset, this server's store directory; a PostgreSQL URL
     /// (`postgres://user:password@host/db`, or `?host=/run/postgresql` for a Unix socket), a
     /// database every replica shares: any replica hands jobs to workers and serves their
-    /// results (`server/src/jobs/postgres.rs`).
+    /// results (`service/src/jobs/postgres.rs`).
     #[arg(long, env = "C4G_JOB_DATABASE", hide_env_values = true)]
     pub job_database: Option<Secret>,
     /// Hours a job that ended (done, failed, cancelled) is kept, with its result, after its last
@@ -201,7 +201,7 @@ pub struct Config {
     #[arg(long, env = "C4G_FFMPEG", default_value = "ffmpeg")]
     pub ffmpeg: PathBuf,
     /// For tests only: fault points (comma-separated) where the server stops until it is
-    /// killed (`server/src/faults.rs` lists them).
+    /// killed (`service/src/faults.rs` lists them).
     #[arg(long, env = "C4G_FAULT_PAUSE", hide = true, value_delimiter = ',')]
     pub fault_pause: Vec<String>,
 }

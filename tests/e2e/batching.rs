@@ -1,4 +1,4 @@
-//! Batching across requests (`server/src/batching.rs`): concurrent exact decodes and renders of
+//! Batching across requests (`service/src/sets/batching.rs`): concurrent exact decodes and renders of
 //! one clip share decoder runs, and each request still gets what it would have got alone.
 //!
 //! The server runs on the CPU with a wait long enough (`C4G_BATCH_WAIT_MS=100`) for requests sent

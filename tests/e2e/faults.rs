@@ -5,7 +5,7 @@
 //!
 //! Crashes in windows too narrow to hit by timing (inside an encode, between writing a clip's
 //! features and its rename, between storing a job's result and its record) use the server's
-//! fault points (`--fault-pause`, `server/src/faults.rs`): the server stops there, logs it, and
+//! fault points (`--fault-pause`, `service/src/faults.rs`): the server stops there, logs it, and
 //! the test kills it.
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 

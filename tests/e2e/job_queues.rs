@@ -6,7 +6,7 @@
 //!
 //! Then what is PostgreSQL's own: jobs belong to their model, and a database outage is a clear
 //! `unavailable` that passes when the database is back. (What is the disk store's own, restarts
-//! and interrupted writes, is tested beside it in `server/src/jobs/disk.rs`.)
+//! and interrupted writes, is tested beside it in `service/src/jobs/disk.rs`.)
 
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 

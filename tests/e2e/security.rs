@@ -5,7 +5,7 @@
 //! (checked on both transports, never written to the log).
 //!
 //! The pure parts have unit tests beside the code: archive names and links, bomb ratios and
-//! bounded reads (`server/src/intake/images.rs`), JSON depth and nulls, id shapes
+//! bounded reads (`service/src/clips/intake/images.rs`), JSON depth and nulls, id shapes
 //! (`server/src/api/json.rs`), the key comparison (`server/src/auth.rs`).
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 

@@ -1,5 +1,5 @@
 //! Replicas sharing their clips through object storage (`C4G_SHARED_STORE`,
-//! `server/src/shared_clips.rs`): `c4g-server` processes with stores of their own and one shared
+//! `service/src/clips/shared.rs`): `c4g-server` processes with stores of their own and one shared
 //! store, run twice: a directory (`file://`, `object_store`'s local backend), and an S3 bucket on
 //! moto's S3-compatible server (`moto_server` from PyPI, on loopback: the `aws` backend with its
 //! conditional puts, as against a real bucket).

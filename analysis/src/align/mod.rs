@@ -48,6 +48,7 @@ mod normal;
 mod pyramid;
 mod scale;
 mod splat;
+mod target;
 #[cfg(test)]
 mod tests;
 
@@ -60,6 +61,7 @@ use c4g_renderer::raster::RenderOptions;
 use c4g_scene::{Camera, GaussianSet, SceneError};
 use normal::{Normal, conditioning, cost, damped_step, normal_equations};
 use pyramid::Level;
+use target::check_target;
 
 /// Levenberg–Marquardt's first damping.
 const LAMBDA_START: f64 = 1e-3;
@@ -261,28 +263,6 @@ fn check_inputs(set: &GaussianSet, target: &[f32], camera: &Camera) -> Result<()
         });
     }
     check_target(target, camera)
-}
-
-/// A frame to compare renders with: RGB floats at `camera`'s size, all finite.
-pub(crate) fn check_target(target: &[f32], camera: &Camera) -> Result<(), SceneError> {
-    let (w, h) = (camera.width() as usize, camera.height() as usize);
-    if target.len() != w * h * 3 {
-        return Err(SceneError::InvalidImage(format!(
-            "the target frame holds {} floats, but the camera renders {w}x{h} pixels, which is \
-             {} RGB floats: give the frame at the camera's size (or the camera at the frame's)",
-            target.len(),
-            w * h * 3
-        )));
-    }
-    if let Some(i) = target.iter().position(|v| !v.is_finite()) {
-        return Err(SceneError::InvalidImage(format!(
-            "the target frame has a non-finite value {} at pixel {} (channel {})",
-            target[i],
-            i / 3,
-            i % 3
-        )));
-    }
-    Ok(())
 }
 
 /// Where one level's refinement ended.

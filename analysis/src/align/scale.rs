@@ -25,7 +25,7 @@
 use glam::Affine3A;
 use rayon::prelude::*;
 
-use super::check_target;
+use super::target::check_target;
 use c4g_renderer::CpuRasterizer;
 use c4g_renderer::raster::{Rasterizer, RenderOptions};
 use c4g_scene::{Camera, GaussianSet, SceneError};

@@ -17,5 +17,5 @@ pub async fn recover(
 ) -> Result<Json<RecoveredCameras>, ErrorReply> {
     let service = state.service()?.clone();
     let options: RecoverOptions = json::typed(body)?;
-    Ok(Json(service.recover_cameras(&id, options).await?))
+    Ok(Json(service.views.recover_cameras(&id, options).await?))
 }

@@ -306,7 +306,7 @@ pub async fn get(
     let service = state.service()?;
     let record = service.store.get_or_fetch(&id).await?;
     let mut clip = clip_json(&record, None);
-    if let Some(recovered) = service.recovered_cameras(&id) {
+    if let Some(recovered) = service.views.recovered_cameras(&id) {
         clip["recovered_cameras"] = json!(recovered);
     }
     Ok(Json(clip))
@@ -325,7 +325,7 @@ pub async fn frame(
     ClipId(id): ClipId,
     FrameIndex(index): FrameIndex,
 ) -> Result<Response, ErrorReply> {
-    let png = state.service()?.context_frame_png(&id, index).await?;
+    let png = state.service()?.store.context_frame_png(&id, index).await?;
     Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response())
 }
 

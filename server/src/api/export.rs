@@ -1,6 +1,6 @@
 //! `POST /v1/clips/{id}/export`: the sets over a time range as one file other viewers open, sent
 //! as a download (`Content-Disposition: attachment`): a zip of `.ply` or `.spz` files, or a
-//! fitted `.splatv` (`server/src/exports.rs`).
+//! fitted `.splatv` (`service/src/views/exports.rs`).
 //!
 //! Headers: `X-C4G-Sets` (the sets in the file, or fitted to), and for `.splatv`
 //! `X-C4G-Fit-Position-Error` (the fit's largest and RMS position error over those sets, scene
@@ -65,7 +65,7 @@ pub async fn export(
             prune: request.prune,
         },
     };
-    let export = service.export(&id, &stream, format).await?;
+    let export = service.views.export(&id, &stream, format).await?;
     let name: String = id.chars().take(12).collect();
     let mut response = (
         [

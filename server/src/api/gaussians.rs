@@ -104,9 +104,9 @@ pub async fn decode(
         prune: request.prune,
     };
     let frames = if request.features {
-        service.decode_features(&id, times, quality).await?
+        service.views.decode_features(&id, times, quality).await?
     } else {
-        service.decode(&id, times, quality).await?
+        service.sets.decode(&id, times, quality).await?
     };
     Ok(match format {
         GaussianFormat::Json => Json(wire::json(&frames)).into_response(),

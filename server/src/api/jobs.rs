@@ -31,7 +31,7 @@ pub async fn submit(
     check(&request, service.limits.max_context_frames)?;
     // Held here (fetched from the shared store when another replica has it) before it is checked.
     service.store.get_or_fetch(&clip_id).await?;
-    request.validate(service, &clip_id)?;
+    request.validate(&service.views, &clip_id)?;
     let stored = serde_json::to_value(&request)
         .map_err(|e| ServiceError::Internal(format!("cannot store the request: {e}")))?;
     let record = service.jobs.create(&clip_id, stored).await?;

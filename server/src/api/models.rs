@@ -27,10 +27,10 @@ pub fn describe(service: &Service) -> Value {
         "gaussians_per_set": m.gaussian_count,
         "feature_lifting": m.feature_decoder_width(),
         "time_policy": engine.time_policy().name(),
-        "renderer": service.renderer.name(),
+        "renderer": service.views.renderer.name(),
         // Which pixels a Gaussian reaches in this server's renders: what a client that
         // rasterizes sets itself (the viewer) needs to draw the same image.
-        "footprint": service.renderer.footprint().as_str(),
+        "footprint": service.views.renderer.footprint().as_str(),
         "store_key": service.model_key(),
         "limits": {
             "context_frames": service.limits.context_frames,

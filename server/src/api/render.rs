@@ -13,12 +13,12 @@ use super::json::{self, ClipId, JsonBody};
 use crate::AppState;
 use crate::error::ErrorReply;
 use c4g_service::ServiceError;
-use c4g_service::service::{DEFAULT_PATH_FRAMES, PathRequest, ViewRequest};
 use c4g_service::sets::keyframes::KeyframesSpec;
 use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
 use c4g_service::views::camera::CameraSpec;
 use c4g_service::views::features::FeatureRender;
 use c4g_service::views::image_formats::{ImageFormat, encode_image, encode_mp4, to_rgb8};
+use c4g_service::views::render::{DEFAULT_PATH_FRAMES, PathRequest, ViewRequest};
 
 /// Frame rate of trajectory videos when a request does not say.
 const DEFAULT_VIDEO_FPS: f64 = 12.0;
@@ -89,7 +89,10 @@ pub async fn render(
         };
         let t = view.t;
         if let Some(render) = FeatureRender::of_format(format) {
-            let features = service.render_features(&id, view, quality, render).await?;
+            let features = service
+                .views
+                .render_features(&id, view, quality, render)
+                .await?;
             let mut response = with_headers(
                 format,
                 features.bytes,
@@ -103,7 +106,7 @@ pub async fn render(
             );
             return Ok(response);
         }
-        let image = service.render_view(&id, view, quality).await?;
+        let image = service.views.render_view(&id, view, quality).await?;
         let bytes = encode_image(&image, format)?;
         return Ok(with_headers(
             format,
@@ -151,19 +154,14 @@ pub async fn render(
         height: request.height,
         background: request.background,
     };
-    let record = service.store.get_or_fetch(&id).await?;
-    let plan = service.plan_path(&record, &path)?;
-    let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
-    let approximation = service.approximation(&record, &quality, &times)?;
-    let encoding = service.store.encoding(&id).await?;
-    let background = path.background;
     let images = service
-        .work(move |service| {
-            service.render_path_now(&id, &encoding, &plan, background, &approximation)
+        .views
+        .render_path_all(&id, &path, &quality, |_, image| {
+            Ok((image.width, image.height, to_rgb8(&image)))
         })
         .await?;
-    let (w, h) = images.first().map_or((0, 0), |i| (i.width, i.height));
-    let frames: Vec<Vec<u8>> = images.iter().map(to_rgb8).collect();
+    let (w, h) = images.first().map_or((0, 0), |&(w, h, _)| (w, h));
+    let frames: Vec<Vec<u8>> = images.into_iter().map(|(_, _, rgb)| rgb).collect();
     let video = encode_mp4(
         &service.tools.ffmpeg,
         &service.tools.scratch,

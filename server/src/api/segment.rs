@@ -66,5 +66,5 @@ pub async fn segment(
         width: body.width,
         height: body.height,
     };
-    Ok(Json(service.segment(&id, request).await?))
+    Ok(Json(service.views.segment(&id, request).await?))
 }

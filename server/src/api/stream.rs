@@ -23,7 +23,7 @@ use crate::AppState;
 use crate::error::ErrorReply;
 use c4g_service::sets::keyframes::KeyframesSpec;
 use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
-use c4g_service::sets::streaming::{Spacing, StreamRequest, check_compact};
+use c4g_service::sets::streaming::{self, Spacing, StreamRequest, check_compact};
 
 /// The stream's content type.
 pub const CONTENT_TYPE: &str = "application/x-c4g-stream";
@@ -73,7 +73,7 @@ pub async fn stream(
             prune: request.prune,
         },
     };
-    let sets = service.stream(&id, &stream).await?;
+    let sets = streaming::stream(&service.sets, &id, &stream).await?;
     let count = sets.times.len();
     // The first set goes out with the headers: a stream that cannot even begin (a first set beyond
     // the stream's range at this position error, for instance) is then the usual JSON error, and

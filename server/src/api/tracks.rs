@@ -49,5 +49,5 @@ pub async fn tracks(
             prune: request.prune,
         },
     };
-    Ok(Json(service.tracks(&id, request).await?))
+    Ok(Json(service.views.tracks(&id, request).await?))
 }

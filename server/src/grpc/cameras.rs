@@ -6,7 +6,7 @@ use tonic::{Request, Response, Status};
 use crate::error::status;
 use c4g_service::views::recovery::RecoverOptions;
 
-use super::Grpc;
+use super::context::Grpc;
 use super::convert::*;
 
 pub(super) async fn recover_cameras(
@@ -19,6 +19,7 @@ pub(super) async fn recover_cameras(
     };
     let recovered = grpc
         .service()?
+        .views
         .recover_cameras(&request.clip_id, options)
         .await
         .map_err(status)?;

@@ -8,7 +8,7 @@ use crate::error::{IntoStatus, status};
 use c4g_service::ServiceError;
 use c4g_service::clips::intake::{IntakeOptions, Media, MediaKind};
 
-use super::Grpc;
+use super::context::Grpc;
 use super::convert::*;
 
 pub(super) async fn upload(

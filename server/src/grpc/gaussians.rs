@@ -6,7 +6,7 @@ use tonic::{Request, Response, Status};
 use crate::error::status;
 use crate::wire::{self, Precision};
 
-use super::Grpc;
+use super::context::Grpc;
 use super::convert::*;
 
 pub(super) async fn decode(
@@ -24,11 +24,13 @@ pub(super) async fn decode(
     let service = grpc.service()?;
     let frames = if request.features {
         service
+            .views
             .decode_features(&request.clip_id, request.times, quality)
             .await
             .map_err(status)?
     } else {
         service
+            .sets
             .decode(&request.clip_id, request.times, quality)
             .await
             .map_err(status)?

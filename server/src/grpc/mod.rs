@@ -1,21 +1,17 @@
 //! The gRPC service `c4g.v1.C4G`: the same operations as the REST API, over HTTP/2 on the same
 //! port, plus `grpc.health.v1` and reflection.
 
-use std::pin::Pin;
-use std::sync::Arc;
-
 use axum::http::HeaderMap;
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_server::{C4g, C4gServer};
-use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::AppState;
-use crate::error::status;
-use c4g_service::service::Service;
+use context::{BoxStream, Grpc};
 
 mod cameras;
 mod clips;
+mod context;
 mod convert;
 mod gaussians;
 mod models;
@@ -62,18 +58,6 @@ pub fn routes(state: AppState) -> tonic::service::Routes {
     }
     routes
 }
-
-struct Grpc {
-    state: AppState,
-}
-
-impl Grpc {
-    fn service(&self) -> Result<&Arc<Service>, Status> {
-        Ok(self.state.service().map_err(status)?)
-    }
-}
-
-type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
 
 #[tonic::async_trait]
 impl C4g for Grpc {

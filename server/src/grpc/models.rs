@@ -3,7 +3,7 @@
 use c4g_proto::v1 as pb;
 use tonic::{Request, Response, Status};
 
-use super::Grpc;
+use super::context::Grpc;
 
 pub(super) async fn list_models(
     grpc: &Grpc,

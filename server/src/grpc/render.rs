@@ -2,18 +2,17 @@
 
 use c4g_proto::v1 as pb;
 use c4g_scene::Trajectory;
-use tokio::sync::mpsc;
+use tokio_stream::StreamExt;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
 
 use crate::error::{IntoStatus, status};
 use c4g_service::ServiceError;
-use c4g_service::service::{PathRequest, ViewRequest};
-use c4g_service::sets::streaming::{STREAM_AHEAD, plan_sets};
 use c4g_service::views::features::FeatureRender;
 use c4g_service::views::image_formats::encode_image;
+use c4g_service::views::render::{PathRequest, ViewRequest};
 
-use super::Grpc;
+use super::context::{BoxStream, Grpc};
 use super::convert::*;
 
 pub(super) async fn render(
@@ -33,6 +32,7 @@ pub(super) async fn render(
     if let Some(render) = FeatureRender::of_format(format) {
         let features = grpc
             .service()?
+            .views
             .render_features(&request.clip_id, view, quality, render)
             .await
             .map_err(status)?;
@@ -50,6 +50,7 @@ pub(super) async fn render(
     }
     let image = grpc
         .service()?
+        .views
         .render_view(&request.clip_id, view, quality)
         .await
         .map_err(status)?;
@@ -66,7 +67,7 @@ pub(super) async fn render(
 pub(super) async fn render_trajectory(
     grpc: &Grpc,
     request: Request<pb::RenderTrajectoryRequest>,
-) -> Result<Response<super::BoxStream<pb::RenderedImage>>, Status> {
+) -> Result<Response<BoxStream<pb::RenderedImage>>, Status> {
     let request = request.into_inner();
     let service = grpc.service()?.clone();
     let format = image_format(request.format).map_err(status)?;
@@ -108,58 +109,27 @@ pub(super) async fn render_trajectory(
         height: nonzero(request.height),
         background: background(&request.background).map_err(status)?,
     };
-    let record = service
-        .store
-        .get_or_fetch(&request.clip_id)
-        .await
-        .map_err(status)?;
-    let frames = service.plan_path(&record, &path).map_err(status)?;
-    let times: Vec<f64> = frames.iter().map(|(t, _)| *t).collect();
     let quality = quality_spec(
         request.quality,
         request.keyframes.as_ref(),
         request.prune.as_ref(),
     )
     .map_err(status)?;
-    let approximation = service
-        .approximation(&record, &quality, &times)
+    let image_format = request.format;
+    let frames = service
+        .views
+        .render_path(&request.clip_id, &path, &quality, move |t, image| {
+            Ok(pb::RenderedImage {
+                time: t,
+                width: image.width,
+                height: image.height,
+                format: image_format,
+                data: encode_image(&image, format)?,
+                channels: 0,
+            })
+        })
+        .await
         .map_err(status)?;
-    let encoding = service.store.encoding(&record.id).await.map_err(status)?;
-    let (tx, rx) = mpsc::channel(STREAM_AHEAD);
-    let bg = path.background;
-    tokio::spawn(async move {
-        let plan = match plan_sets(&service, &record.id, &encoding, &times, approximation).await {
-            Ok(plan) => plan,
-            Err(e) => {
-                let _ = tx.send(Err(e.into_status())).await;
-                return;
-            }
-        };
-        for (t, camera) in frames {
-            let encoding = encoding.clone();
-            let plan = plan.clone();
-            let result = service
-                .work(move |service| {
-                    let (_, set) = service
-                        .sets_now(&plan, &encoding, &[t])?
-                        .pop()
-                        .ok_or_else(|| ServiceError::Internal("the decoder gave no set".into()))?;
-                    let image = service.render_now(&set, &camera, bg)?;
-                    Ok(pb::RenderedImage {
-                        time: t,
-                        width: image.width,
-                        height: image.height,
-                        format: request.format,
-                        data: encode_image(&image, format)?,
-                        channels: 0,
-                    })
-                })
-                .await;
-            let end = result.is_err();
-            if tx.send(result.map_err(status)).await.is_err() || end {
-                return;
-            }
-        }
-    });
-    Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    let frames = ReceiverStream::new(frames).map(|frame| frame.map_err(status));
+    Ok(Response::new(Box::pin(frames)))
 }

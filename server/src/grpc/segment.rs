@@ -7,7 +7,7 @@ use crate::error::{IntoStatus, status};
 use c4g_service::ServiceError;
 use c4g_service::views::features::{Click, SegmentRequest, Selection};
 
-use super::Grpc;
+use super::context::Grpc;
 use super::convert::*;
 
 pub(super) async fn segment(
@@ -43,6 +43,7 @@ pub(super) async fn segment(
     };
     let segment = grpc
         .service()?
+        .views
         .segment(&request.clip_id, segment_request)
         .await
         .map_err(status)?;

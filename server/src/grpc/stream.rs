@@ -8,15 +8,15 @@ use tonic::{Request, Response, Status};
 use crate::error::{IntoStatus, status};
 use crate::wire::{self, Precision};
 use c4g_formats::c4gv::EncodeOptions;
-use c4g_service::sets::streaming::{Spacing, StreamRequest, check_compact};
+use c4g_service::sets::streaming::{self, Spacing, StreamRequest, check_compact};
 
+use super::context::{BoxStream, Grpc};
 use super::convert::*;
-use super::{BoxStream, Grpc};
 
 pub(super) async fn stream_gaussians(
     grpc: &Grpc,
     request: Request<pb::StreamGaussiansRequest>,
-) -> Result<Response<super::BoxStream<pb::GaussianFrame>>, Status> {
+) -> Result<Response<BoxStream<pb::GaussianFrame>>, Status> {
     let request = request.into_inner();
     let service = grpc.service()?.clone();
     let spacing = match request.spacing {
@@ -52,8 +52,7 @@ pub(super) async fn stream_gaussians(
         }
         None => None,
     };
-    let sets = service
-        .stream(&request.clip_id, &stream)
+    let sets = streaming::stream(&service.sets, &request.clip_id, &stream)
         .await
         .map_err(status)?;
     let frames: BoxStream<pb::GaussianFrame> = match compact {

@@ -7,7 +7,7 @@ use crate::error::{IntoStatus, status};
 use c4g_service::ServiceError;
 use c4g_service::views::tracking::{TrackRequest, Tracker};
 
-use super::Grpc;
+use super::context::Grpc;
 use super::convert::*;
 
 pub(super) async fn tracks(
@@ -41,6 +41,7 @@ pub(super) async fn tracks(
     };
     let tracks = grpc
         .service()?
+        .views
         .tracks(&request.clip_id, track_request)
         .await
         .map_err(status)?;

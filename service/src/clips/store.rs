@@ -26,6 +26,7 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
+use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
@@ -81,6 +82,23 @@ fn lock(state: &Mutex<State>) -> MutexGuard<'_, State> {
 }
 
 impl ClipStore {
+    /// The clip's context frame `index` (upload order) as PNG bytes.
+    pub async fn context_frame_png(&self, id: &str, index: usize) -> Result<Vec<u8>, ServiceError> {
+        let record = self.get_or_fetch(id).await?;
+        if index >= record.context_times.len() {
+            return Err(ServiceError::NotFound(format!(
+                "clip {id} has {} context frames (0..{})",
+                record.context_times.len(),
+                record.context_times.len()
+            )));
+        }
+        let mut bytes = Vec::new();
+        std::fs::File::open(self.frame_path(id, index))
+            .and_then(|mut f| f.read_to_end(&mut bytes))
+            .map_err(|e| ServiceError::Internal(format!("cannot read a context frame: {e}")))?;
+        Ok(bytes)
+    }
+
     /// Opens (creating) the store for the model with key `model_key` under `root`, loading every
     /// clip's record (features load when first asked for). Leftovers of interrupted writes are
     /// removed; clip directories that cannot be served are moved aside to `damaged/`.

@@ -12,10 +12,10 @@ use serde_json::json;
 
 use crate::ServiceError;
 use crate::jobs::JobRecord;
-use crate::service::{PathRequest, Service};
-use crate::sets::quality::Approximation;
+use crate::sets::quality::QualitySpec;
 use crate::views::camera::CameraSpec;
 use crate::views::image_formats::{ImageFormat, encode_image, le_bytes};
+use crate::views::render::{PathRequest, Views};
 
 /// Samplers a worker runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -83,7 +83,7 @@ pub const MAX_PROMPT_CHARS: usize = 10_000;
 
 impl RefineRequest {
     /// Checks everything that can be checked before a worker has the job.
-    pub fn validate(&self, service: &Service, clip_id: &str) -> Result<(), ServiceError> {
+    pub fn validate(&self, views: &Views, clip_id: &str) -> Result<(), ServiceError> {
         let steps = self.steps.unwrap_or(30);
         if steps == 0 || steps > MAX_STEPS {
             return Err(ServiceError::invalid(format!(
@@ -163,14 +163,14 @@ impl RefineRequest {
         // The path, planned at a nominal size: a bad camera or time range fails now, not later.
         // Nominally 8 frames, or fewer where the server allows fewer sets a request: the worker's
         // own frame count is the worker's, not the client's to be refused for.
-        let record = service.store.get(clip_id)?;
-        let mut path = self.path(service.limits.max_times.clamp(1, 8));
+        let record = views.store.get(clip_id)?;
+        let mut path = self.path(views.limits.max_times.clamp(1, 8));
         path.width = Some(16);
         path.height = Some(16);
         if !path.cameras.is_empty() {
             path.frames = None;
         }
-        service.plan_path(&record, &path)?;
+        views.plan_path(&record, &path)?;
         Ok(())
     }
 
@@ -243,7 +243,7 @@ pub struct WorkerJob {
 /// The job as a worker with `model` gets it: context frames (as uploaded), then novel views
 /// rendered at its size.
 pub async fn build_job(
-    service: &Arc<Service>,
+    views: &Arc<Views>,
     record: &JobRecord,
     model: WorkerModel,
 ) -> Result<WorkerJob, ServiceError> {
@@ -253,7 +253,7 @@ pub async fn build_job(
             record.id
         ))
     })?;
-    let clip = service.store.get_or_fetch(&record.clip_id).await?;
+    let clip = views.store.get_or_fetch(&record.clip_id).await?;
     let available = clip.context_times.len();
     let (context, novel) = if model.keyframes > 0 {
         // C4G's layout: exactly the model's keyframes (a clip with fewer context frames repeats
@@ -287,7 +287,7 @@ pub async fn build_job(
     for &k in &chosen {
         video.push((
             clip.context_times[k],
-            service.context_frame_png(&clip.id, k).await?,
+            views.store.context_frame_png(&clip.id, k).await?,
         ));
     }
     let mut path = request.path(novel);
@@ -296,7 +296,7 @@ pub async fn build_job(
     }
     path.width = Some(model.width);
     path.height = Some(model.height);
-    let plan = service.plan_path(&clip, &path)?;
+    let plan = views.plan_path(&clip, &path)?;
     // C4G's layout pads fewer novel views to the model's count (the worker drops the padding).
     let fits = match model.keyframes {
         0 => plan.len() == novel,
@@ -309,21 +309,14 @@ pub async fn build_job(
             if model.keyframes > 0 { "1 to " } else { "" },
         )));
     }
-    let encoding = service.store.encoding(&clip.id).await?;
-    let times: Vec<f64> = plan.iter().map(|(t, _)| *t).collect();
-    let id = clip.id.clone();
-    let rendered = service
-        .work(move |service| {
-            service
-                .render_path_now(&id, &encoding, &plan, [0.0; 3], &Approximation::EXACT)?
-                .iter()
-                .map(|image| encode_image(image, ImageFormat::Png))
-                .collect::<Result<Vec<_>, _>>()
+    // Novel views over black, exact: what the worker regenerates.
+    path.background = [0.0; 3];
+    let rendered = views
+        .render_path_all(&clip.id, &path, &QualitySpec::default(), |t, image| {
+            Ok((t, encode_image(&image, ImageFormat::Png)?))
         })
         .await?;
-    for (time, png) in times.into_iter().zip(rendered) {
-        video.push((time, png));
-    }
+    video.extend(rendered);
     Ok(WorkerJob {
         job_id: record.id.clone(),
         attempt: record.attempt,

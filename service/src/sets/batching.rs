@@ -24,7 +24,10 @@ use c4g_scene::GaussianSet;
 use tokio::sync::oneshot;
 
 use crate::ServiceError;
-use crate::service::Service;
+use c4g_engine::{Engine, Keyframes};
+
+use crate::sets::decoder;
+use crate::work::WorkSlots;
 
 /// The sets one request gets back, or why its batch failed.
 type Reply = Result<Vec<(f64, GaussianSet)>, Arc<ServiceError>>;
@@ -48,15 +51,20 @@ struct Open {
 
 /// See the module documentation.
 pub struct DecodeBatcher {
+    engine: Arc<Engine>,
+    work: Arc<WorkSlots>,
     wait: Duration,
     open: Mutex<HashMap<String, Open>>,
     serial: std::sync::atomic::AtomicU64,
 }
 
 impl DecodeBatcher {
-    /// Batches that wait up to `wait` for company (zero: no batching).
-    pub fn new(wait: Duration) -> Self {
+    /// Batches of `engine`'s decodes, run on `work`, that wait up to `wait` for company (zero:
+    /// no batching).
+    pub fn new(engine: Arc<Engine>, work: Arc<WorkSlots>, wait: Duration) -> Self {
         Self {
+            engine,
+            work,
             wait,
             open: Mutex::new(HashMap::new()),
             serial: std::sync::atomic::AtomicU64::new(0),
@@ -68,23 +76,29 @@ impl DecodeBatcher {
         self.wait
     }
 
+    /// One exact decoder run on a work slot.
+    async fn run_now(
+        &self,
+        encoding: Arc<Encoding>,
+        times: Vec<f64>,
+    ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
+        let engine = self.engine.clone();
+        self.work
+            .run(move || decoder::decode(&engine, &encoding, &times, &Keyframes::Exact, None))
+            .await
+    }
+
     /// The exact sets of clip `id` at `times` (already checked), decoded in a batch with other
     /// requests' targets when some arrive within the wait.
     pub async fn decode(
-        &self,
-        service: &Arc<Service>,
+        self: &Arc<Self>,
         id: &str,
         encoding: Arc<Encoding>,
         times: Vec<f64>,
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
-        let capacity = service
-            .engine
-            .decode_batch_size(encoding.frame_count())
-            .max(1);
+        let capacity = self.engine.decode_batch_size(encoding.frame_count()).max(1);
         if self.wait.is_zero() || times.len() >= capacity {
-            return service
-                .work(move |service| service.decode_now(&encoding, &times))
-                .await;
+            return self.run_now(encoding, times).await;
         }
         let (reply, answer) = oneshot::channel();
         let member = Member {
@@ -129,10 +143,10 @@ impl DecodeBatcher {
             }
         };
         if let Some(full) = full {
-            tokio::spawn(run(service.clone(), full));
+            tokio::spawn(run(self.clone(), full));
         }
         if let Some(serial) = opened {
-            self.flush_after_wait(service, id, serial);
+            self.flush_after_wait(id, serial);
         }
         match answer.await {
             Ok(Ok(sets)) => Ok(sets),
@@ -148,19 +162,19 @@ impl DecodeBatcher {
     }
 
     /// Runs batch `serial` of clip `id` once the wait is over, unless it ran already (full).
-    fn flush_after_wait(&self, service: &Arc<Service>, id: &str, serial: u64) {
-        let (service, id, wait) = (service.clone(), id.to_owned(), self.wait);
+    fn flush_after_wait(self: &Arc<Self>, id: &str, serial: u64) {
+        let (batcher, id, wait) = (self.clone(), id.to_owned(), self.wait);
         tokio::spawn(async move {
             tokio::time::sleep(wait).await;
             let batch = {
-                let mut open = service.batcher.lock();
+                let mut open = batcher.lock();
                 match open.get(&id) {
                     Some(batch) if batch.serial == serial => open.remove(&id),
                     _ => None,
                 }
             };
             if let Some(batch) = batch {
-                run(service, batch).await;
+                run(batcher, batch).await;
             }
         });
     }
@@ -168,7 +182,7 @@ impl DecodeBatcher {
 
 /// One decoder call (chunked by the engine's batch) for every member's targets, the sets handed
 /// back to each. Nobody waiting: nothing runs.
-async fn run(service: Arc<Service>, batch: Open) {
+async fn run(batcher: Arc<DecodeBatcher>, batch: Open) {
     let members: Vec<Member> = batch
         .members
         .into_iter()
@@ -186,9 +200,7 @@ async fn run(service: Arc<Service>, batch: Open) {
     metrics::histogram!("c4g_decode_batch_targets").record(times.len() as f64);
     metrics::histogram!("c4g_decode_batch_requests").record(members.len() as f64);
     let encoding = batch.encoding;
-    let decoded = service
-        .work(move |service| service.decode_now(&encoding, &times))
-        .await;
+    let decoded = batcher.run_now(encoding, times).await;
     match decoded {
         Ok(sets) => {
             let mut sets = sets.into_iter();

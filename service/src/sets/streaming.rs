@@ -16,13 +16,14 @@
 use std::sync::Arc;
 
 use c4g_engine::Encoding;
-use c4g_formats::c4gv::{self, EncodeOptions, Encoder};
+use c4g_formats::c4gv::{EncodeOptions, Encoder};
 use c4g_scene::GaussianSet;
 use futures_util::Stream;
 use tokio::sync::mpsc;
 
 use crate::ServiceError;
-use crate::service::{Service, SetPlan};
+use crate::sets::SetSource;
+use crate::sets::plan::SetPlan;
 use crate::sets::quality::{Approximation, QualitySpec};
 
 /// Sets a stream decodes ahead of what the client has taken: the backpressure bound.
@@ -90,95 +91,93 @@ pub struct SetStream {
     plan: Arc<SetPlan>,
 }
 
-impl Service {
-    /// Plans the stream `request` asks of clip `id` and starts decoding it.
-    pub async fn stream(
-        self: &Arc<Self>,
-        id: &str,
-        request: &StreamRequest,
-    ) -> Result<SetStream, ServiceError> {
-        let record = self.store.get_or_fetch(id).await?;
-        let (first, last) = record.span();
-        let (start, end) = (request.start.unwrap_or(first), request.end.unwrap_or(last));
-        for (name, value) in [
-            ("step", request.spacing.step()),
-            ("fps", request.spacing.fps()),
-        ] {
-            if let Some(v) = value
-                && !(v > 0.0 && v <= MAX_SPACING)
-            {
-                return Err(ServiceError::invalid(format!(
-                    "{name} must be above 0 and at most {MAX_SPACING:e}, got {v}"
-                )));
-            }
-        }
-        let step = match request.spacing {
-            Spacing::Step(step) => step,
-            Spacing::Fps(fps) => 1.0 / fps,
-            Spacing::Source if record.source.fps > 0.0 => 1.0 / record.source.fps,
-            Spacing::Source => 0.1,
-        };
-        // Positive now, or infinite: a rate so low that its step overflows is a step past any
-        // span, which makes one set, at the start.
-        self.check_times(&record, &[start, end])?;
-        if start > end {
+/// Plans the stream `request` asks of clip `id` and starts decoding it.
+pub async fn stream(
+    sets: &Arc<SetSource>,
+    id: &str,
+    request: &StreamRequest,
+) -> Result<SetStream, ServiceError> {
+    let record = sets.store.get_or_fetch(id).await?;
+    let (first, last) = record.span();
+    let (start, end) = (request.start.unwrap_or(first), request.end.unwrap_or(last));
+    for (name, value) in [
+        ("step", request.spacing.step()),
+        ("fps", request.spacing.fps()),
+    ] {
+        if let Some(v) = value
+            && !(v > 0.0 && v <= MAX_SPACING)
+        {
             return Err(ServiceError::invalid(format!(
-                "start {start} is after end {end}"
+                "{name} must be above 0 and at most {MAX_SPACING:e}, got {v}"
             )));
         }
-        // Counted in f64 first: a tiny step makes more sets than a usize holds.
-        let sets = ((end - start) / step + 1e-9).floor() + 1.0;
-        if sets > self.limits.max_times as f64 {
-            return Err(ServiceError::TooLarge(format!(
-                "{sets:.0} sets in one stream; at most {} (C4G_MAX_TIMES): use a larger step",
-                self.limits.max_times
-            )));
-        }
-        let times: Vec<f64> = (0..sets as usize)
-            .map(|i| match i {
-                0 => start,
-                i => (start + step * i as f64).min(end),
-            })
-            .collect();
-        let approximation = self.approximation(&record, &request.quality, &times)?;
-        let encoding = self.store.encoding(&record.id).await?;
-        // With keyframes, those over the whole range are decoded now; each chunk is then
-        // interpolated from them.
-        let plan = plan_sets(self, &record.id, &encoding, &times, approximation).await?;
-        let (tx, rx) = mpsc::channel(STREAM_AHEAD);
-        let (service, all, decoding) = (self.clone(), times.clone(), plan.clone());
-        tokio::spawn(async move {
-            // Decode in the engine's batch size; a send waits while the client is behind.
-            let batch = service
-                .engine
-                .decode_batch_size(encoding.frame_count())
-                .max(1);
-            for chunk in all.chunks(batch) {
-                let (chunk, encoding, plan) = (chunk.to_vec(), encoding.clone(), decoding.clone());
-                let frames = service
-                    .work(move |service| service.sets_now(&plan, &encoding, &chunk))
-                    .await;
-                match frames {
-                    Ok(frames) => {
-                        for frame in frames {
-                            if tx.send(Ok(frame)).await.is_err() {
-                                return; // the client went away
-                            }
+    }
+    let step = match request.spacing {
+        Spacing::Step(step) => step,
+        Spacing::Fps(fps) => 1.0 / fps,
+        Spacing::Source if record.source.fps > 0.0 => 1.0 / record.source.fps,
+        Spacing::Source => 0.1,
+    };
+    // Positive now, or infinite: a rate so low that its step overflows is a step past any
+    // span, which makes one set, at the start.
+    sets.check_times(&record, &[start, end])?;
+    if start > end {
+        return Err(ServiceError::invalid(format!(
+            "start {start} is after end {end}"
+        )));
+    }
+    // Counted in f64 first: a tiny step makes more sets than a usize holds.
+    let count = ((end - start) / step + 1e-9).floor() + 1.0;
+    if count > sets.limits.max_times as f64 {
+        return Err(ServiceError::TooLarge(format!(
+            "{count:.0} sets in one stream; at most {} (C4G_MAX_TIMES): use a larger step",
+            sets.limits.max_times
+        )));
+    }
+    let times: Vec<f64> = (0..count as usize)
+        .map(|i| match i {
+            0 => start,
+            i => (start + step * i as f64).min(end),
+        })
+        .collect();
+    let approximation = sets.approximation(&record, &request.quality, &times)?;
+    let encoding = sets.store.encoding(&record.id).await?;
+    // With keyframes, those over the whole range are decoded now; each chunk is then
+    // interpolated from them.
+    let plan = plan_sets(sets, &record.id, &encoding, &times, approximation).await?;
+    let (tx, rx) = mpsc::channel(STREAM_AHEAD);
+    let (source, all, decoding) = (sets.clone(), times.clone(), plan.clone());
+    tokio::spawn(async move {
+        // Decode in the engine's batch size; a send waits while the client is behind.
+        let batch = source
+            .engine
+            .decode_batch_size(encoding.frame_count())
+            .max(1);
+        for chunk in all.chunks(batch) {
+            let (chunk, encoding, plan) = (chunk.to_vec(), encoding.clone(), decoding.clone());
+            let frames = source
+                .work(move |sets| sets.sets_now(&plan, &encoding, &chunk))
+                .await;
+            match frames {
+                Ok(frames) => {
+                    for frame in frames {
+                        if tx.send(Ok(frame)).await.is_err() {
+                            return; // the client went away
                         }
                     }
-                    Err(e) => {
-                        let _ = tx.send(Err(e)).await;
-                        return;
-                    }
+                }
+                Err(e) => {
+                    let _ = tx.send(Err(e)).await;
+                    return;
                 }
             }
-        });
-        Ok(SetStream {
-            times,
-            sets: rx,
-            plan,
-        })
-    }
+        }
+    });
+    Ok(SetStream {
+        times,
+        sets: rx,
+        plan,
+    })
 }
 
 /// Bounds a compact stream's position error may have, scene units: from a hundredth of a
@@ -286,27 +285,19 @@ impl Compact {
     }
 }
 
-/// A `C4GV` mask of the Gaussians that `sets` show never to move, or `None` when they show
-/// nothing (fewer than two sets, or sets C4GV cannot quantise).
-pub fn static_mask(sets: &[GaussianSet], options: &EncodeOptions) -> Option<Vec<bool>> {
-    (sets.len() >= 2)
-        .then(|| c4gv::static_mask(sets, options).ok())
-        .flatten()
-}
-
 /// Where a stream's sets come from, decided on a work slot before the first is sent: keyframes
 /// decoded over all of `times` (or none: the stream decodes chunk by chunk as it goes), and the
 /// Gaussians pruning keeps.
 pub async fn plan_sets(
-    service: &Arc<Service>,
+    sets: &Arc<SetSource>,
     id: &str,
     encoding: &Arc<Encoding>,
     times: &[f64],
     approximation: Approximation,
 ) -> Result<Arc<SetPlan>, ServiceError> {
     let (id, encoding, times) = (id.to_owned(), encoding.clone(), times.to_vec());
-    let plan = service
-        .work(move |service| service.plan_sets_now(&id, &encoding, &times, &approximation))
+    let plan = sets
+        .work(move |sets| sets.plan_sets_now(&id, &encoding, &times, &approximation))
         .await?;
     Ok(Arc::new(plan))
 }

@@ -23,10 +23,10 @@ use image::RgbImage;
 
 use crate::ServiceError;
 use crate::clips::intake::cameras::{ClipCameras, ScaleFit};
-use crate::service::Service;
 use crate::views::camera::{CameraSpec, InputSpec};
+use crate::views::render::Views;
 
-impl Service {
+impl Views {
     /// `cameras` (one per context frame, in the encoding's order) fitted to the model's depth
     /// scale; as they are when no context camera moves. `frames` are the intake's frames, which
     /// the encoding's `frame_order` indexes.
@@ -44,7 +44,7 @@ impl Service {
         // The first context camera is the model's frame at any scale: the later ones carry it.
         let later = 1..cameras.frames.len();
         let times: Vec<f64> = cameras.frames[later.clone()].iter().map(|f| f.t).collect();
-        let sets = self.decode_now(encoding, &times)?;
+        let sets = self.sets.decode_now(encoding, &times)?;
         let mut targets = Vec::with_capacity(times.len());
         let mut poses = Vec::with_capacity(times.len());
         for k in later {

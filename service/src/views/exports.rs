@@ -19,8 +19,8 @@ use c4g_formats::splatv;
 use c4g_scene::{CANONICAL_CHANNELS, GaussianSet};
 
 use crate::ServiceError;
-use crate::service::Service;
 use crate::sets::streaming::StreamRequest;
+use crate::views::render::Views;
 
 /// The files an export can be.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -67,7 +67,7 @@ pub struct Export {
     pub fit: Option<splatv::FitReport>,
 }
 
-impl Service {
+impl Views {
     /// Exports the sets `request` asks of clip `id` as one `format` file.
     pub async fn export(
         self: &Arc<Self>,
@@ -75,7 +75,7 @@ impl Service {
         request: &StreamRequest,
         format: ExportFormat,
     ) -> Result<Export, ServiceError> {
-        let mut stream = self.stream(id, request).await?;
+        let mut stream = crate::sets::streaming::stream(&self.sets, id, request).await?;
         let limit = self.limits.max_export_bytes;
         let total = stream.times.len();
         if format != ExportFormat::Splatv && total > frames_zip::MAX_FRAMES {

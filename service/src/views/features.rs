@@ -24,24 +24,20 @@
 //! its encoder's features; `models/c4g-tiny-objects`, which lifts object ids, is scored offline by
 //! `c4g.segmentation`).
 
-use std::num::NonZeroUsize;
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::Arc;
 
 use c4g_analysis::features::{FeaturePca, cosine, pixel_feature, select_similar};
 use c4g_engine::{Encoding, EngineError, Keyframes};
 use c4g_renderer::{CpuRasterizer, Image, RenderOptions};
 use c4g_scene::GaussianSet;
-use lru::LruCache;
 use serde::{Deserialize, Serialize};
 
 use crate::ServiceError;
-use crate::service::{Service, ViewRequest};
 use crate::sets::quality::{Approximation, QualitySpec};
 use crate::views::camera::{CameraSpec, InputSpec};
+use crate::views::feature_field::MapsKind;
 use crate::views::image_formats::{ImageFormat, encode_image, le_bytes};
-
-/// Clips whose colouring basis stays in memory (4 F-wide vectors each).
-const BASES_KEPT: usize = 1024;
+use crate::views::render::{ViewRequest, Views};
 
 /// The cosine similarity a Gaussian's feature must reach to join a segment, unless the request
 /// sets its own: close enough that one object's Gaussians share a segment and a neighbouring
@@ -51,63 +47,6 @@ pub const DEFAULT_SEGMENT_THRESHOLD: f32 = 0.8;
 
 /// Rendered alpha of the selected Gaussians at which a mask pixel is set.
 pub const MASK_ALPHA: f32 = 0.5;
-
-/// What a package's feature decoder was trained to lift (`feature_decoder.kind` in `model.json`).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum MapsKind {
-    /// The encoding's own features.
-    Encoder,
-    /// Per-patch object-id fractions of each context frame (the client's to give).
-    ObjectId,
-    /// Nothing declared: any maps of the right width.
-    Undeclared,
-    /// A kind this server does not know.
-    Other(String),
-}
-
-impl MapsKind {
-    /// The kind `model.json` in `dir` declares (undeclared when it cannot be read: the engine
-    /// has read it already, so that only happens when it says nothing).
-    fn of_package(dir: &std::path::Path) -> Self {
-        let kind = std::fs::read(dir.join("model.json"))
-            .ok()
-            .and_then(|bytes| serde_json::from_slice::<serde_json::Value>(&bytes).ok())
-            .and_then(|m| m["feature_decoder"]["kind"].as_str().map(str::to_owned));
-        match kind.as_deref() {
-            None => Self::Undeclared,
-            Some("encoder") => Self::Encoder,
-            Some("object-id") => Self::ObjectId,
-            Some(other) => Self::Other(other.to_owned()),
-        }
-    }
-}
-
-/// The package's feature kind and each clip's colouring basis.
-pub struct FeatureField {
-    kind: MapsKind,
-    bases: Mutex<LruCache<String, Arc<FeaturePca>>>,
-}
-
-impl FeatureField {
-    /// The field of the package in `dir`.
-    pub fn of_package(dir: &std::path::Path) -> Self {
-        Self {
-            kind: MapsKind::of_package(dir),
-            bases: Mutex::new(LruCache::new(
-                NonZeroUsize::new(BASES_KEPT).unwrap_or(NonZeroUsize::MIN),
-            )),
-        }
-    }
-
-    /// Forgets clip `id`'s basis (the clip is gone).
-    pub fn forget(&self, id: &str) {
-        self.lock().pop(id);
-    }
-
-    fn lock(&self) -> std::sync::MutexGuard<'_, LruCache<String, Arc<FeaturePca>>> {
-        self.bases.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-}
 
 /// A feature image's form: the raw channels, or the clip's PCA colouring.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -217,7 +156,7 @@ pub struct Segment {
     pub masks: Vec<Mask>,
 }
 
-impl Service {
+impl Views {
     /// Refuses, before any work, what this package cannot lift: no feature decoder, or maps
     /// this server cannot make.
     pub fn check_features(&self) -> Result<(), ServiceError> {
@@ -261,7 +200,7 @@ impl Service {
         times: &[f64],
     ) -> Result<Approximation, ServiceError> {
         self.check_features()?;
-        let approximation = self.approximation(record, quality, times)?;
+        let approximation = self.sets.approximation(record, quality, times)?;
         if approximation.drop_queries {
             return Err(ServiceError::Unsupported(
                 "features and prune.drop_queries do not go together: the feature decoder decodes \
@@ -281,11 +220,11 @@ impl Service {
         quality: QualitySpec,
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
         let record = self.store.get_or_fetch(id).await?;
-        self.check_times(&record, &times)?;
+        self.sets.check_times(&record, &times)?;
         let approximation = self.feature_approximation(&record, &quality, &times)?;
         let encoding = self.store.encoding(id).await?;
         let id = id.to_owned();
-        self.work(move |service| service.feature_sets_now(&id, &encoding, &times, &approximation))
+        self.work(move |views| views.feature_sets_now(&id, &encoding, &times, &approximation))
             .await
     }
 
@@ -298,7 +237,7 @@ impl Service {
         approximation: &Approximation,
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
         let maps = self.context_feature_maps(encoding)?;
-        let kept = self.kept_now(id, encoding, approximation)?;
+        let kept = self.sets.kept_now(id, encoding, approximation)?;
         let sets = self.lift_now(encoding, &maps, times, &approximation.keyframes)?;
         kept.select(sets)
     }
@@ -333,13 +272,13 @@ impl Service {
             let (track, stats) =
                 c4g_engine::keyframes::plan_keyframes(times, keyframes, encoding.times(), decode)?;
             let interpolated = times.iter().filter(|&&t| track.keyframe(t).is_none());
-            crate::service::count_sets(stats.exact_decodes, interpolated.count());
+            crate::sets::decoder::count_sets(stats.exact_decodes, interpolated.count());
             times
                 .iter()
                 .map(|&t| Ok((t, track.at(t)?)))
                 .collect::<Result<Vec<_>, ServiceError>>()?
         } else {
-            crate::service::count_sets(times.len(), 0);
+            crate::sets::decoder::count_sets(times.len(), 0);
             times.iter().copied().zip(decode(times)?).collect()
         };
         metrics::histogram!("c4g_decode_duration_seconds").record(started.elapsed().as_secs_f64());
@@ -383,18 +322,18 @@ impl Service {
         let approximation = self.feature_approximation(&record, &quality, &[view.t])?;
         let encoding = self.store.encoding(id).await?;
         let id = id.to_owned();
-        self.work(move |service| {
-            let (_, set) = service
+        self.work(move |views| {
+            let (_, set) = views
                 .feature_sets_now(&id, &encoding, &[view.t], &approximation)?
                 .pop()
                 .ok_or_else(|| ServiceError::Internal("the decoder returned no set".into()))?;
-            let image = service
+            let image = views
                 .renderer
                 .render_features(&set, &camera, view.background)?;
             match render {
                 FeatureRender::Raw => raw_view(&image),
                 FeatureRender::Pca => {
-                    let basis = service.feature_basis_now(&id, &encoding)?;
+                    let basis = views.feature_basis_now(&id, &encoding)?;
                     let rgb = basis.colour_image(&image, view.background)?;
                     let coloured = Image { rgb, ..image };
                     Ok(FeatureView {
@@ -428,12 +367,12 @@ impl Service {
             Selection::Click(click) => click.t,
             Selection::Feature { t, .. } => t.unwrap_or(record.span().0),
         };
-        self.check_times(&record, &[at])?;
+        self.sets.check_times(&record, &[at])?;
         let times = request
             .times
             .clone()
             .unwrap_or_else(|| record.context_times.clone());
-        self.check_times(&record, &times)?;
+        self.sets.check_times(&record, &times)?;
         let camera = request.camera.clone().unwrap_or_else(|| CameraSpec {
             input: Some(InputSpec::default()),
             ..CameraSpec::default()
@@ -460,12 +399,13 @@ impl Service {
             .pop()
             .ok_or_else(|| ServiceError::Internal("the decoder returned no set".into()))?;
         let sets = self
+            .sets
             .decode(id, times.clone(), QualitySpec::default())
             .await?;
         let selection = request.selection;
-        self.work(move |service| {
+        self.work(move |views| {
             let options = RenderOptions {
-                footprint: service.renderer.footprint(),
+                footprint: views.renderer.footprint(),
                 ..RenderOptions::default()
             };
             let feature = match selection {
@@ -484,7 +424,7 @@ impl Service {
                 .zip(&mask_cameras)
                 .map(|((t, set), camera)| {
                     crate::work::stop_if_cancelled()?;
-                    let image = service.render_now(&set.select(&keep)?, camera, [0.0; 3])?;
+                    let image = views.render_now(&set.select(&keep)?, camera, [0.0; 3])?;
                     Ok(run_lengths(*t, &image.alpha))
                 })
                 .collect::<Result<Vec<_>, ServiceError>>()?;

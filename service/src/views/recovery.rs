@@ -33,8 +33,8 @@ use crate::ServiceError;
 use crate::clips::durable::{sync_dir, write_synced};
 use crate::clips::intake::cameras::{ClipCameras, ContextCamera, Intrinsics};
 use crate::clips::record::ClipRecord;
-use crate::service::Service;
 use crate::views::camera::CameraSpec;
+use crate::views::render::Views;
 
 /// The file beside a clip's record.
 const FILE: &str = "recovered-cameras.json";
@@ -81,7 +81,7 @@ pub struct FrameFit {
     pub converged: bool,
 }
 
-impl Service {
+impl Views {
     /// Recovers the cameras of clip `id`'s context frames and keeps them with the clip.
     pub async fn recover_cameras(
         self: &Arc<Self>,
@@ -90,14 +90,14 @@ impl Service {
     ) -> Result<RecoveredCameras, ServiceError> {
         let record = self.store.get_or_fetch(id).await?;
         let times = record.context_times.clone();
-        let sets = self.decode(id, times, Default::default()).await?;
+        let sets = self.sets.decode(id, times, Default::default()).await?;
         let id = id.to_owned();
-        self.work(move |service| {
+        self.work(move |views| {
             let targets = (0..record.context_times.len())
-                .map(|k| service.model_view(&id, k))
+                .map(|k| views.model_view(&id, k))
                 .collect::<Result<Vec<_>, _>>()?;
-            let recovered = service.align_frames(&record, &sets, &targets, options)?;
-            service.keep_recovered(&id, &recovered)?;
+            let recovered = views.align_frames(&record, &sets, &targets, options)?;
+            views.keep_recovered(&id, &recovered)?;
             Ok(recovered)
         })
         .await

@@ -39,9 +39,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::ServiceError;
 use crate::clips::intake::cameras::ClipCameras;
-use crate::service::Service;
 use crate::sets::quality::QualitySpec;
 use crate::views::camera::{CameraSpec, InputSpec};
+use crate::views::render::Views;
 
 /// A point to track: where it is seen, at which time.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -133,7 +133,7 @@ pub struct Tracks {
     pub tracks: Vec<Track>,
 }
 
-impl Service {
+impl Views {
     /// Tracks `request`'s points through clip `id`.
     pub async fn tracks(
         self: &Arc<Self>,
@@ -151,7 +151,7 @@ impl Service {
         let times = request
             .times
             .unwrap_or_else(|| record.context_times.clone());
-        self.check_times(&record, &times)?;
+        self.sets.check_times(&record, &times)?;
         let mut decoded: Vec<f64> = times.clone();
         decoded.extend(request.queries.iter().map(|q| q.t));
         decoded.sort_by(f64::total_cmp);
@@ -162,9 +162,9 @@ impl Service {
             let sets = self.decode_features(id, decoded, request.quality).await?;
             let queries = request.queries;
             return self
-                .work(move |service| {
+                .work(move |views| {
                     let frames =
-                        FeatureFrames::render(service, &sets, cameras.as_ref(), width, height)?;
+                        FeatureFrames::render(views, &sets, cameras.as_ref(), width, height)?;
                     let tracks = queries
                         .iter()
                         .map(|&query| frames.track(query, &times))
@@ -179,10 +179,10 @@ impl Service {
                 })
                 .await;
         }
-        let sets = self.decode(id, decoded, request.quality).await?;
+        let sets = self.sets.decode(id, decoded, request.quality).await?;
         let queries = request.queries;
-        self.work(move |service| {
-            let footprint = service.renderer.footprint();
+        self.work(move |views| {
+            let footprint = views.renderer.footprint();
             let options = RenderOptions {
                 footprint,
                 ..RenderOptions::default()
@@ -262,7 +262,7 @@ struct FeatureFrames<'a> {
 
 impl<'a> FeatureFrames<'a> {
     fn render(
-        service: &Service,
+        views: &Views,
         sets: &'a [(f64, GaussianSet)],
         cameras: Option<&ClipCameras>,
         width: u32,
@@ -273,12 +273,12 @@ impl<'a> FeatureFrames<'a> {
             .map(|(t, set)| {
                 crate::work::stop_if_cancelled()?;
                 let camera = input_camera(cameras, *t, width, height)?;
-                let image = service.renderer.render_features(set, &camera, [0.0; 3])?;
+                let image = views.renderer.render_features(set, &camera, [0.0; 3])?;
                 Ok((*t, set, camera, image))
             })
             .collect::<Result<_, ServiceError>>()?;
         let options = RenderOptions {
-            footprint: service.renderer.footprint(),
+            footprint: views.renderer.footprint(),
             ..RenderOptions::default()
         };
         Ok(Self { frames, options })

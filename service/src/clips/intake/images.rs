@@ -14,11 +14,12 @@ use std::io::{Cursor, Read};
 use bytes::Bytes;
 use image::{ImageReader, RgbImage};
 
-use super::sampling::select;
-use super::{
-    DEFAULT_IMAGE_FPS, Intake, IntakeOptions, Media, MediaKind, SourceInfo, TimedFrame,
-    check_duration, check_frame_count, check_frame_size, frame_step,
+use super::limits::{check_duration, check_frame_count, check_frame_size};
+use super::media::{
+    DEFAULT_IMAGE_FPS, Intake, IntakeOptions, Media, SourceInfo, TimedFrame, frame_step,
 };
+use super::sampling::select;
+use super::sniff::MediaKind;
 use crate::ServiceError;
 use crate::config::Limits;
 

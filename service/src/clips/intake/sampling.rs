@@ -1,7 +1,7 @@
 //! Which source frames become context frames: those in the window, then either every
 //! `stride`-th or `max_frames` spread evenly (first and last always included).
 
-use super::IntakeOptions;
+use super::media::IntakeOptions;
 use crate::ServiceError;
 use crate::config::Limits;
 

@@ -27,11 +27,10 @@ use serde::Deserialize;
 use tokio::io::{AsyncBufReadExt, AsyncRead, AsyncReadExt, BufReader};
 use tokio::process::Command;
 
+use super::limits::{check_duration, check_frame_count, check_frame_size};
+use super::media::{Intake, IntakeOptions, IntakeTools, SourceInfo, TimedFrame, frame_step};
 use super::sampling::select;
-use super::{
-    Intake, IntakeOptions, IntakeTools, MediaKind, SourceInfo, TimedFrame, check_duration,
-    check_frame_count, check_frame_size, frame_step,
-};
+use super::sniff::MediaKind;
 use crate::ServiceError;
 use crate::config::Limits;
 
