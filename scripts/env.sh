@@ -8,4 +8,3 @@ if [ -z "${ORT_DYLIB_PATH:-}" ] && [ -x "$PYTHON" ]; then
   ORT_DYLIB_PATH="$("$PYTHON" -c 'import onnxruntime, os; print(os.path.join(os.path.dirname(onnxruntime.__file__), "capi", "libonnxruntime.so.'"$ORT_VERSION"'"))' 2>/dev/null || true)"
 fi
 export REPO C4G_VENV PYTHON ORT_DYLIB_PATH
-export PYTHONPATH="$REPO/models/python${PYTHONPATH:+:$PYTHONPATH}"

@@ -4,7 +4,7 @@
 //!     C4G_BENCH_PACKAGE=/tmp/c4g-official-random cargo bench -p c4g-engine --bench engine -- official
 //!
 //! The second form measures a package at the official dimensions with random weights (made by
-//! `python -m c4g.export --random-init --config official`): size, not weights, sets the cost.
+//! `python -m c4g.package.export --random-init --config official`): size, not weights, sets the cost.
 //! `-- keyframes` measures keyframed decoding on c4g-tiny (64 output times of its first test clip:
 //! exact, 8 uniform keyframes, adaptive), and prints each mode's decodes and error against exact.
 //! Results go in docs/benchmarks.md with the machine line this prints.

@@ -2,13 +2,13 @@
 //!
 //!     cargo bench -p c4g-engine --bench tradeoffs         # the sweep, about 9 minutes on 2 cores
 //!     C4G_TRADEOFFS_QUICK=1 cargo bench -p c4g-engine --bench tradeoffs   # a smoke subset, seconds
-//!     $PYTHON -m c4g.tradeoffs_report --results target/tradeoffs.json --out docs
+//!     $PYTHON -m c4g.bench.tradeoffs_report --results target/tradeoffs.json --out docs
 //!
 //! A filter argument that does not name `tradeoffs` (`cargo bench -p c4g-engine -- keyframes`)
 //! skips it. Results go to `target/tradeoffs.json` (`C4G_TRADEOFFS_OUT` overrides);
-//! `c4g.tradeoffs_report` turns them into `docs/tradeoffs.md` and its plot. Needs `ORT_DYLIB_PATH`; the f16 and int8
+//! `c4g.bench.tradeoffs_report` turns them into `docs/tradeoffs.md` and its plot. Needs `ORT_DYLIB_PATH`; the f16 and int8
 //! rows also need `PYTHON` (`scripts/env.sh`), which converts the package into a temporary
-//! directory with `python -m c4g.precision` at the start (without it those rows are skipped, and
+//! directory with `python -m c4g.package.precision` at the start (without it those rows are skipped, and
 //! the JSON says so).
 //!
 //! **What one setting is.** The knobs: keyframes (exact, every N seconds, a count, adaptive with a
@@ -588,7 +588,7 @@ fn status_mib(key: &str) -> Option<f64> {
 // Packages
 
 /// Packages by precision: the committed f32 one, and f16 / int8 converted into `dir` by
-/// `python -m c4g.precision`. A precision that cannot be made is left out with the reason.
+/// `python -m c4g.package.precision`. A precision that cannot be made is left out with the reason.
 fn packages(dir: &Path, wanted: &[&'static str]) -> (HashMap<&'static str, PathBuf>, Vec<String>) {
     let mut out = HashMap::from([("f32", common::tiny_dir())]);
     let mut notes = Vec::new();
@@ -602,11 +602,10 @@ fn packages(dir: &Path, wanted: &[&'static str]) -> (HashMap<&'static str, PathB
         };
         let target = dir.join(format!("c4g-tiny-{p}"));
         let status = Command::new(python)
-            .args(["-m", "c4g.precision", "--package"])
+            .args(["-m", "c4g.package.precision", "--package"])
             .arg(common::tiny_dir())
             .args(["--precision", p, "--out"])
             .arg(&target)
-            .env("PYTHONPATH", common::workspace().join("models/python"))
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::null())
             .status();
@@ -615,7 +614,7 @@ fn packages(dir: &Path, wanted: &[&'static str]) -> (HashMap<&'static str, PathB
                 out.insert(p, target);
             }
             other => notes.push(format!(
-                "{p} rows skipped: python -m c4g.precision failed ({other:?})"
+                "{p} rows skipped: python -m c4g.package.precision failed ({other:?})"
             )),
         }
     }

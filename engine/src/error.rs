@@ -100,7 +100,7 @@ pub enum EngineError {
     },
     /// A query subset asked of a package whose decoder decodes all its queries only.
     #[error(
-        "package {package}'s decoder has no query_indices input (model.json: decoder_query_subset); it cannot drop queries: export it again with `python -m c4g.export`"
+        "package {package}'s decoder has no query_indices input (model.json: decoder_query_subset); it cannot drop queries: export it again with `python -m c4g.package.export`"
     )]
     NoQuerySubset {
         /// The package name.

@@ -43,7 +43,7 @@ pub(crate) struct Contract {
     outputs: Vec<Port>,
 }
 
-/// The ONNX metadata entry in which the export tool (`c4g.precision`) stamps the precision a graph
+/// The ONNX metadata entry in which the export tool (`c4g.package.precision`) stamps the precision a graph
 /// computes in; a graph without one computes in f32.
 pub(crate) const PRECISION_KEY: &str = "c4g.precision";
 
@@ -178,7 +178,7 @@ impl Contract {
         if stamped != self.precision {
             return Err(invalid(format!(
                 "the graph computes in {stamped} (its {PRECISION_KEY:?} metadata) but model.json \
-                 declares precision {:?}: convert the package again with `python -m c4g.precision`",
+                 declares precision {:?}: convert the package again with `python -m c4g.package.precision`",
                 self.precision
             )));
         }

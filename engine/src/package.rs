@@ -19,7 +19,7 @@ pub const PACKAGE_FORMAT: &str = "c4g-package";
 /// The `format_version` this engine reads.
 pub const PACKAGE_FORMAT_VERSION: u32 = 1;
 /// The precisions a package's graphs may compute in: f32, f16 (weights and activations, made by
-/// `python -m c4g.precision`) and int8 (dynamic quantization of the large MatMuls).
+/// `python -m c4g.package.precision`) and int8 (dynamic quantization of the large MatMuls).
 pub const PRECISIONS: [&str; 3] = ["f32", "f16", "int8"];
 /// The canonical Gaussian layout, channel by channel, as `gaussian_layout` must list it.
 pub const CANONICAL_LAYOUT: [&str; 14] = [

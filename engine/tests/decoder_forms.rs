@@ -1,7 +1,7 @@
 //! The two decoder forms (`decoder_form` in docs/package.md) through the engine, on the fixture
 //! `models/fixtures/decoder-forms`: one small seeded random model exported as `plain/` and as
 //! `precomputed/` (its context projection computed once per encoding), with the PyTorch mirror's
-//! outputs (`python -m c4g.fixture --decoder-forms`).
+//! outputs (`python -m c4g.package.fixture --decoder-forms`).
 //!
 //! Both forms decode the mirror's Gaussians and lifted features within 1e-4 (the parity tolerance;
 //! the forms differ by float rounding only, about 1e-6), and each other's within the same bound.
@@ -118,7 +118,7 @@ fn skip() -> bool {
     }
     assert!(
         forms_dir().join("reference.json").is_file(),
-        "the decoder-forms fixture is missing: python -m c4g.fixture --decoder-forms"
+        "the decoder-forms fixture is missing: python -m c4g.package.fixture --decoder-forms"
     );
     false
 }

@@ -2,7 +2,7 @@
 //! mirror and with the public reference implementation.
 //!
 //! - The fixture package carries the mirror's outputs on real frames (`reference.safetensors`,
-//!   made by `python -m c4g.fixture`): T in {1, 4, 16}, targets at both ends of the span and between
+//!   made by `python -m c4g.package.fixture`): T in {1, 4, 16}, targets at both ends of the span and between
 //!   frames, under both time policies. Every Gaussian parameter within 1e-4 absolute (scales also
 //!   within 1e-3 relative), lifted features within 1e-4.
 //! - `../shared/reference/c4g-official-small/reference.npz`: outputs of the public C4G code on the

@@ -1,5 +1,5 @@
 //! Lower-precision packages through the Rust engine: c4g-tiny converted to f16 and int8 by the
-//! export tool's converter (`python -m c4g.precision`, run here into a temporary directory) loads,
+//! export tool's converter (`python -m c4g.package.precision`, run here into a temporary directory) loads,
 //! decodes a real test clip into valid (finite, in-range) sets close to the f32 package's, and a
 //! package whose graphs and `model.json` disagree on their precision is refused at load.
 //!
@@ -36,11 +36,10 @@ fn python() -> Option<PathBuf> {
 
 fn convert(python: &Path, precision: &str, out: &Path) {
     let status = Command::new(python)
-        .args(["-m", "c4g.precision", "--package"])
+        .args(["-m", "c4g.package.precision", "--package"])
         .arg(common::tiny_dir())
         .args(["--precision", precision, "--out"])
         .arg(out)
-        .env("PYTHONPATH", common::workspace().join("models/python"))
         .status()
         .unwrap();
     assert!(status.success(), "the converter failed for {precision}");
@@ -120,7 +119,7 @@ fn graphs_and_manifest_that_disagree_on_precision_are_refused() {
     assert!(matches!(err, EngineError::InvalidPackage { .. }), "{err}");
     let message = err.to_string();
     assert!(
-        message.contains("computes in int8") && message.contains("c4g.precision"),
+        message.contains("computes in int8") && message.contains("c4g.package.precision"),
         "{message}"
     );
 }

@@ -1,6 +1,6 @@
 //! The default model, c4g-tiny, through the Rust path (ONNX Runtime engine + CPU rasterizer) on its
 //! committed test clips: the PSNR of every target, at its own camera and at a novel view, must equal
-//! what the Python path (PyTorch mirror + fast rasterizer, `python -m c4g.evaluate`) measured and
+//! what the Python path (PyTorch mirror + fast rasterizer, `python -m c4g.eval.held_out`) measured and
 //! wrote into each clip's `clip.json`, within 0.1 dB. Also a floor on quality: the model must beat
 //! the mean-colour baseline there, so a broken package cannot pass by matching a broken Python run.
 #![allow(clippy::unwrap_used, clippy::expect_used)]

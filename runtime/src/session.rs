@@ -44,7 +44,7 @@ pub struct SessionOptions {
     /// Let ONNX Runtime's intra-op threads spin while they wait for work (its own default, on).
     /// Spinning trades CPU for latency between operators; on a machine with few cores that also
     /// runs other work (the rasterizer, the network) it can cost more than it saves: measure
-    /// (`python -m c4g.bench_decoder`, docs/benchmarks.md).
+    /// (`python -m c4g.bench.decoder`, docs/benchmarks.md).
     pub intra_op_spinning: bool,
 }
 

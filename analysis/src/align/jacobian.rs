@@ -98,7 +98,7 @@ impl CameraJacobian {
 /// θ = 0 (the focal parameter included, whether or not a caller refines it).
 ///
 /// The image is the forward model's (`raster` module documentation) in f64: it agrees with the
-/// float64 reference (`models/python/c4g/raster_reference.py`) to 1e-6 on the fixture scenes,
+/// float64 reference (`models/python/c4g/raster/reference.py`) to 1e-6 on the fixture scenes,
 /// and with the [`c4g_renderer::CpuRasterizer`]'s f32 render to that one's tolerance (2e-3). Features, depth and
 /// contributions are not rendered.
 ///

@@ -19,7 +19,7 @@
 //! best factor that lowers the cost by less than [`EVIDENCE`] of factor 1's is no evidence: the
 //! factor stays 1 (cameras that do not move fit every factor alike).
 //!
-//! The mirror of this search is `models/python/c4g/generalisation.py`'s `fit_camera_scale`, which
+//! The mirror of this search is `models/python/c4g/eval/generalisation.py`'s `fit_camera_scale`, which
 //! scores it on two procedural worlds.
 
 use glam::Affine3A;

@@ -16,7 +16,7 @@ from c4g_client._sse import SseDecoder, SseEvent
 
 
 def c4gs_bytes(frames, precision="f32", feature_width=None):
-    """A C4GS payload written from the spec (renderer/src/formats/c4gs.rs), independently of
+    """A C4GS payload written from the spec (formats/src/c4gs.rs), independently of
     the reader under test: version 1, or with ``feature_width`` version 2, whose frames hold a
     sixth column (the features) after the five."""
     code, dtype = {"f32": (0, "<f4"), "f16": (1, "<f2")}[precision]
@@ -256,7 +256,7 @@ def test_c4gv_varints_read_zigzag_leb128_of_up_to_five_bytes():
 def c4gv_stream(
     cells_per_frame, steps=(1e-3, 1 / 1024, 1 / 4096, 1 / 1023, 1 / 1023), deflate=False, static=None
 ):
-    """A C4GV stream written from the spec (renderer/src/formats/c4gv.rs): the Gaussians marked
+    """A C4GV stream written from the spec (formats/src/c4gv/mod.rs): the Gaussians marked
     in ``static`` once, in the static record (with their first frame's cells), the others in a
     keyframe then delta frames: the reader's input, built independently of it."""
     import zlib

@@ -129,7 +129,7 @@ SH_C0 = 0.28209479177387814
 
 
 def ply_rows(s: c4g.GaussianSet) -> np.ndarray:
-    """The rows ``c4g-renderer``'s PLY writer makes of a set (renderer/src/formats/ply.rs),
+    """The rows ``c4g-renderer``'s PLY writer makes of a set (formats/src/ply.rs),
     computed the same way: float64, the C library's ``log``, then float32."""
     n = len(s)
     rows = np.zeros((n, 17), dtype=np.float32)

@@ -1,4 +1,4 @@
-"""``C4GS``, the server's packed binary Gaussian sets (``renderer/src/formats/c4gs.rs`` is the
+"""``C4GS``, the server's packed binary Gaussian sets (``formats/src/c4gs.rs`` is the
 specification; ``docs/api.md``, format ``binary``), read into :class:`GaussianSet`.
 
 Little endian: a 16-byte header (``b"C4GS"``, ``u16`` version, ``u8`` precision 0 f32 / 1 f16,

@@ -2,7 +2,7 @@
 with ``compact``), decoded incrementally: feed bytes as they arrive, take each set as soon as its
 record is whole.
 
-The specification is the module doc of ``renderer/src/formats/c4gv.rs``; this reader follows its
+The specification is the module doc of ``formats/src/c4gv/mod.rs``; this reader follows its
 "Reading" section, step by step, and the Rust ``Decoder``'s checks. In short (little endian): a
 header (``b"C4GV"``, ``u16`` version 1, ``u8`` predictor 0, ``u8`` reserved, ``u32`` N, ``u32`` S
 static Gaussians, five ``f64`` grid steps, the ⌈N/8⌉-byte static mask), then records, each a

@@ -1,6 +1,6 @@
 """A Gaussian set as NumPy arrays in gsplat's conventions, and its PyTorch twin.
 
-The server's canonical layout (``renderer/src/gaussians.rs``) is already what gsplat's
+The server's canonical layout (``scene/src/gaussians.rs``) is already what gsplat's
 ``rasterization`` takes, so nothing is converted, only named its way:
 
 ========== ======= =====================================================================

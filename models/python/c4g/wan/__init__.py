@@ -8,6 +8,8 @@
 - `reference`: diffusers' WanVACEPipeline runs and schedules that the Rust refiner must reproduce.
 - `export`: the command line (`python -m c4g.wan.export`) and the refiner package format (refiner.json).
 - `check_merged`: a package with its LoRA merged at export against diffusers' f32 module with it merged.
-- `bench_startup`, `bench_external_initializers`, `bench_layouts`: the worker's start-up memory, how ONNX
-  Runtime holds external weights, and C4G's layout against VACE's (docs/benchmarks.md).
+- `c4g_layout`: C4G's own refinement layout (the one its published LoRA was trained with), in PyTorch.
+- `text`: the text side: umT5's encoder and tokenizer, as the pipeline turns a caption into an embedding.
+- `bench`: the worker's start-up memory, how ONNX Runtime holds external weights, and C4G's layout
+  against VACE's (docs/benchmarks.md).
 """

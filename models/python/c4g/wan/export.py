@@ -70,9 +70,10 @@ from pathlib import Path
 
 import torch
 
-from ..export import readable_by_all
-from . import lora as lora_mod
+from c4g.package.export import readable_by_all
+
 from . import c4g_layout, onnx_graphs, reference, text
+from . import lora as lora_mod
 from .configs import PRESETS, TINY, TINY_C4G, RefinerConfig, build_transformer, build_vae
 
 TEXT_ENCODER_FILE = "text_encoder.onnx"
