@@ -9,7 +9,7 @@
 //!   window positions (the image shrinks by 5 pixels on each side) and averaged over positions
 //!   and channels. With a mask, the positions averaged are those whose window *centre* is masked.
 //!
-//! The float64 NumPy version these are checked against is `models/python/c4g/metrics_reference.py`.
+//! The float64 NumPy version these are checked against is `models/python/c4g/raster/metrics.py`.
 
 use c4g_scene::SceneError;
 

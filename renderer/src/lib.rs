@@ -7,9 +7,13 @@
 
 /// Image fidelity: PSNR and SSIM, optionally masked.
 pub mod fidelity;
-/// Rasterizers: the forward model, its constants and the CPU (and, with `gpu`, wgpu) renderers.
+/// Rasterizers: the forward model, its constants and the CPU (and, with `gpu`, wgpu) renderers;
+/// reverse-mode gradients of renders (`raster::grad`).
 pub mod raster;
 
 #[cfg(feature = "gpu")]
 pub use raster::gpu::GpuRasterizer;
-pub use raster::{CpuRasterizer, FeatureImage, Image, PixelWeight, Rasterizer, RenderOptions};
+pub use raster::{
+    BackwardOptions, CpuRasterizer, DifferentiableRasterizer, FeatureImage, GaussianGradients,
+    Gradients, Image, PixelWeight, Rasterizer, RenderGradients, RenderOptions,
+};

@@ -1,4 +1,4 @@
-//! PSNR and SSIM against the float64 NumPy reference (`models/python/c4g/metrics_reference.py`,
+//! PSNR and SSIM against the float64 NumPy reference (`models/python/c4g/raster/metrics.py`,
 //! fixture `models/fixtures/metrics/cases.safetensors`): within 1e-9 relative, both compute in
 //! f64 from the same f32 images.
 #![allow(clippy::unwrap_used, clippy::expect_used)]

@@ -1,7 +1,7 @@
 //! Shared helpers of the renderer's integration tests: the fixture scenes and image comparison.
 //!
 //! The scenes live in `models/fixtures/scenes/<name>.safetensors` (written by
-//! `python -m c4g.raster_scenes`; layout and contents in that folder's README.md): Gaussian
+//! `python -m c4g.raster.scenes`; layout and contents in that folder's README.md): Gaussian
 //! parameters, a camera, a background and the float64 reference's render of them (stored as f32)
 //! with the footprint the metadata names (`footprint`; absent: the ellipse).
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]

@@ -8,8 +8,8 @@ use std::sync::atomic::{AtomicU32, Ordering};
 
 use rayon::prelude::*;
 
-use super::TILE;
 use super::project::Splat;
+use super::tiling::TILE;
 
 /// The image cut into tiles, row-major.
 pub(super) struct TileGrid {

@@ -27,28 +27,27 @@
 //! parallel counting sort) and `blend.rs` (a tile's front-to-back compositing and its write into
 //! the image). `pixel.rs` evaluates the same model at single pixels, Gaussian by Gaussian.
 
+mod backward;
 mod bin;
 mod blend;
+mod frame;
 mod pixel;
 mod project;
+mod tiling;
 
 use std::sync::Arc;
 
-use rayon::prelude::*;
-
-use super::{FeatureImage, Image, Rasterizer, RenderOptions};
-use bin::{Chunks, TileGrid};
-use blend::{TileAcc, TileRow, blend_tile, d2_cut};
+use super::grad::{
+    BackwardOptions, DifferentiableRasterizer, Gradients, RenderGradients, check_finite,
+};
+use super::{Image, Rasterizer, RenderOptions};
+pub use backward::CpuSaved;
 use c4g_scene::{Camera, GaussianSet, SceneError};
+use frame::render_frame;
 pub use pixel::PixelWeight;
+pub use tiling::{PAIR_BUDGET, TILE};
 // The 3DGS footprint's rule, for the differentiable render of `c4g_analysis::align`.
 pub use project::tiles_3dgs;
-use project::{Splat, View};
-
-/// Tile edge in pixels.
-pub const TILE: u32 = 16;
-/// Most (tile, splat) pairs held at once; more are processed in successive bands of tiles.
-pub const PAIR_BUDGET: usize = 1 << 24;
 
 /// Renders on the CPU with rayon.
 #[derive(Debug, Clone)]
@@ -131,6 +130,14 @@ impl CpuRasterizer {
         Ok(pixel::pixel_weights(gaussians, camera, options, pixels))
     }
 
+    /// Runs `job` on this rasterizer's threads.
+    fn install<R: Send>(&self, job: impl FnOnce() -> R + Send) -> R {
+        match &self.pool {
+            Some(pool) => pool.install(job),
+            None => job(),
+        }
+    }
+
     fn run(
         &self,
         gaussians: &GaussianSet,
@@ -145,11 +152,40 @@ impl CpuRasterizer {
                 gaussians.len()
             )));
         }
-        let job = || render_frame(gaussians, camera, options, self.pair_budget, contributions);
-        Ok(match &self.pool {
-            Some(pool) => pool.install(job),
-            None => job(),
-        })
+        Ok(self
+            .install(|| render_frame(gaussians, camera, options, self.pair_budget, contributions)))
+    }
+}
+
+impl DifferentiableRasterizer for CpuRasterizer {
+    type Saved<'a> = CpuSaved<'a>;
+
+    fn render_saved<'a>(
+        &self,
+        gaussians: &'a GaussianSet,
+        camera: &Camera,
+        options: &RenderOptions,
+    ) -> Result<(Image, CpuSaved<'a>), SceneError> {
+        options.validate()?;
+        if u32::try_from(gaussians.len()).is_err() {
+            return Err(SceneError::InvalidRenderOptions(format!(
+                "{} Gaussians are more than one render can index",
+                gaussians.len()
+            )));
+        }
+        check_finite(gaussians)?;
+        Ok(self.install(|| backward::render_saved(gaussians, camera, options, self.pair_budget)))
+    }
+
+    fn backward(
+        &self,
+        saved: &CpuSaved<'_>,
+        upstream: &RenderGradients<'_>,
+        options: BackwardOptions,
+    ) -> Result<Gradients, SceneError> {
+        let (width, height) = saved.size();
+        upstream.validate(width, height)?;
+        Ok(self.install(|| backward::backward(saved, upstream, options, self.pair_budget)))
     }
 }
 
@@ -162,78 +198,4 @@ impl Rasterizer for CpuRasterizer {
     ) -> Result<Image, SceneError> {
         Ok(self.run(gaussians, camera, options, false)?.0)
     }
-}
-
-/// The whole render on the current rayon pool.
-/// One render, and with `contributions` every Gaussian's blending weight summed over the image's
-/// pixels (Σ transmittance · alpha; 0 for a Gaussian that reaches no pixel).
-fn render_frame(
-    set: &GaussianSet,
-    camera: &Camera,
-    options: &RenderOptions,
-    pair_budget: usize,
-    contributions: bool,
-) -> (Image, Option<Vec<f32>>) {
-    let view = View::new(camera, options);
-    let mut splats: Vec<Splat> = (0..set.len())
-        .into_par_iter()
-        .filter_map(|i| view.project(set, i))
-        .collect();
-    // Depth is ≥ near > 0, so its bit pattern orders like its value.
-    splats.par_sort_unstable_by_key(|s| (u64::from(s.depth.to_bits()) << 32) | u64::from(s.index));
-
-    let features = set.features().filter(|_| options.features);
-    let channels = features.map_or(0, |f| f.width());
-    let grid = TileGrid::new(view.width, view.height);
-    let chunks = Chunks::count(&grid, &splats);
-    let mut image = Image {
-        width: view.width,
-        height: view.height,
-        rgb: vec![0.0; grid.pixels() * 3],
-        alpha: vec![0.0; grid.pixels()],
-        depth: vec![0.0; grid.pixels()],
-        expected_depth: vec![0.0; grid.pixels()],
-        features: (channels > 0).then(|| FeatureImage {
-            channels,
-            values: vec![0.0; grid.pixels() * channels],
-        }),
-    };
-    let mut rows = TileRow::split(&grid, &mut image);
-    let cut = d2_cut(options.footprint);
-    let mut sums = contributions.then(|| vec![0.0f32; set.len()]);
-    for band in grid.bands(&chunks.totals, pair_budget) {
-        let pairs = chunks.fill_band(&grid, &splats, band.clone());
-        let (first, last) = (band.start / grid.tiles_x, (band.end - 1) / grid.tiles_x);
-        let partial: Vec<Vec<(u32, f32)>> = rows[first..=last]
-            .par_iter_mut()
-            .map(|row| {
-                let mut acc = TileAcc::new(channels);
-                let mut local = Vec::new();
-                let tiles = (row.index * grid.tiles_x).max(band.start)
-                    ..((row.index + 1) * grid.tiles_x).min(band.end);
-                for t in tiles {
-                    let k = t - band.start;
-                    acc.clear();
-                    blend_tile(
-                        &mut acc,
-                        &grid,
-                        t,
-                        &pairs.splats[pairs.offsets[k]..pairs.offsets[k + 1]],
-                        &splats,
-                        features.map(|f| (f.width(), f.values())),
-                        cut,
-                        contributions.then_some(&mut local),
-                    );
-                    row.write(&grid, t, &acc, options.background);
-                }
-                local
-            })
-            .collect();
-        if let Some(sums) = &mut sums {
-            for (index, value) in partial.into_iter().flatten() {
-                sums[index as usize] += value;
-            }
-        }
-    }
-    (image, sums)
 }

@@ -7,9 +7,9 @@
 //! rendered depth, which the tests hold them to. What point tracking asks: the Gaussians that
 //! explain a pixel, and by how much.
 
-use super::blend::d2_cut;
+use super::blend::{Sample, d2_cut, row_reach, sample, widened_reach2};
 use super::project::{Splat, View};
-use crate::raster::{ALPHA_MAX, ALPHA_MIN, RenderOptions, TRANSMITTANCE_MIN};
+use crate::raster::{RenderOptions, TRANSMITTANCE_MIN};
 use c4g_scene::{Camera, GaussianSet};
 
 /// A Gaussian's share of a pixel.
@@ -50,22 +50,16 @@ fn weights_at(splats: &[Splat], px: u32, py: u32, cut: f32) -> Vec<PixelWeight> 
         if px < s.x0 || px > s.x1 || py < s.y0 || py > s.y1 {
             continue;
         }
-        // As blend_tile: the row cull (widened for rounding), then d² from the box corner.
-        let reach2 = s.reach2 * 1.001 + 1e-3;
-        let dy = (py - s.y0) as f32 + 0.5 - s.v;
-        let row_d2 = dy * dy * s.inv_syy;
-        if row_d2 > reach2 {
+        // Exactly blend_tile's decisions: its row cull and run of columns, then the same test.
+        let Some(row) = row_reach(s, py, widened_reach2(s)) else {
+            continue;
+        };
+        if px < row.lo || px > row.hi {
             continue;
         }
-        let e = (px - s.x0) as f32 + 0.5 - s.u - s.k * dy;
-        let d2 = s.a * e * e + row_d2;
-        if d2 > cut {
+        let Some(Sample { alpha, .. }) = sample(s, px, row.centre, row.row_d2, cut) else {
             continue;
-        }
-        let alpha = (s.opacity * (-0.5 * d2).exp()).min(ALPHA_MAX);
-        if alpha < ALPHA_MIN {
-            continue;
-        }
+        };
         let next = transmittance * (1.0 - alpha);
         if next < TRANSMITTANCE_MIN {
             break;

@@ -7,7 +7,7 @@
 
 use glam::{DMat3, DQuat, DVec3};
 
-use super::TILE;
+use super::tiling::TILE;
 use crate::raster::{
     ALPHA_MIN, DISCRIMINANT_FLOOR_3DGS, EPS2D, FOV_CLAMP, RenderOptions, SIGMA_EXTENT, TILE_3DGS,
 };
@@ -56,16 +56,45 @@ impl Splat {
     }
 }
 
+/// The f64 intermediates of one Gaussian's EWA projection ([`View::ewa`]).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Ewa {
+    /// Camera-space centre.
+    pub(super) p_cam: DVec3,
+    /// The rotation, normalised, and the norm it had.
+    pub(super) unit: DQuat,
+    pub(super) norm: f64,
+    /// Camera-space x and y with x/z, y/z clamped to the FOV limits (what `J` sees).
+    pub(super) tx: f64,
+    pub(super) ty: f64,
+    /// The rows of the projection's Jacobian `J`.
+    pub(super) j0: DVec3,
+    pub(super) j1: DVec3,
+    /// `W R S`.
+    pub(super) wrs: DMat3,
+    /// The rows of `M = J W R S`.
+    pub(super) m0: DVec3,
+    pub(super) m1: DVec3,
+    /// `|m0|²`, `|m1|²`.
+    pub(super) mxx: f64,
+    pub(super) myy: f64,
+    /// `Σ2D = [[sxx, sxy], [sxy, syy]]` and its determinant.
+    pub(super) sxx: f64,
+    pub(super) sxy: f64,
+    pub(super) syy: f64,
+    pub(super) det: f64,
+}
+
 /// What projection needs of the camera, in f64.
 pub(super) struct View {
-    rotation: DMat3,
+    pub(super) rotation: DMat3,
     translation: DVec3,
-    fx: f64,
-    fy: f64,
+    pub(super) fx: f64,
+    pub(super) fy: f64,
     cx: f64,
     cy: f64,
-    lim_x: f64,
-    lim_y: f64,
+    pub(super) lim_x: f64,
+    pub(super) lim_y: f64,
     near: f64,
     far: f64,
     footprint: Footprint,
@@ -102,61 +131,24 @@ impl View {
 
     /// The splat of Gaussian `i`, or `None` when it is skipped or reaches no pixel.
     pub(super) fn project(&self, set: &GaussianSet, i: usize) -> Option<Splat> {
-        let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
-        let (p, s, q, o, c) = (
-            &set.positions()[i],
-            &set.scales()[i],
-            &set.rotations()[i],
-            set.opacities()[i],
-            &set.colors()[i],
-        );
-        let features_ok = set.features().and_then(|f| f.row(i)).is_none_or(finite);
-        if !(finite(p) && finite(s) && finite(q) && o.is_finite() && finite(c) && features_ok) {
-            return None;
-        }
-        // Alpha never exceeds the opacity: a Gaussian this faint reaches no pixel.
-        if o < ALPHA_MIN {
-            return None;
-        }
-        let q = DQuat::from_xyzw(q[1].into(), q[2].into(), q[3].into(), q[0].into());
-        let norm = q.length();
-        if norm == 0.0 {
-            return None;
-        }
-        let p_cam =
-            self.rotation * DVec3::new(p[0].into(), p[1].into(), p[2].into()) + self.translation;
+        let Ewa {
+            p_cam,
+            mxx,
+            myy,
+            sxx,
+            sxy,
+            syy,
+            det,
+            ..
+        } = self.ewa(set, i)?;
+        let (o, c) = (set.opacities()[i], &set.colors()[i]);
         let z = p_cam.z;
-        if !(z >= self.near && z <= self.far) {
-            return None;
-        }
-
-        // EWA: Σ2D = M Mᵀ + EPS2D·I with M = J W R S (2×3). Through M the covariance is positive
-        // semi-definite by construction, and its determinant is |m0 × m1|² (Cauchy–Binet) with no
-        // cancellation, even for a zero scale or a needle seen end on.
-        let tx = (p_cam.x / z).clamp(-self.lim_x, self.lim_x) * z;
-        let ty = (p_cam.y / z).clamp(-self.lim_y, self.lim_y) * z;
-        let j0 = DVec3::new(self.fx / z, 0.0, -self.fx * tx / (z * z));
-        let j1 = DVec3::new(0.0, self.fy / z, -self.fy * ty / (z * z));
-        let rs = DMat3::from_quat(q / norm)
-            * DMat3::from_diagonal(DVec3::new(s[0].into(), s[1].into(), s[2].into()));
-        let wrs = self.rotation * rs;
-        // Row r of J·W·R·S is (J·W·R·S)ᵀ's column r = (W R S)ᵀ j_r.
-        let m0 = wrs.transpose() * j0;
-        let m1 = wrs.transpose() * j1;
-        let eps = f64::from(EPS2D);
-        let (mxx, myy) = (m0.length_squared(), m1.length_squared());
-        let sxx = mxx + eps;
-        let sxy = m0.dot(m1);
-        let syy = myy + eps;
-        let det = m0.cross(m1).length_squared() + eps * (mxx + myy) + eps * eps;
-        if !(det.is_finite() && det > 0.0) {
-            return None;
-        }
         // syy ≥ EPS2D and the Schur complement det / syy ≥ EPS2D: all three are finite.
         let (a, k, inv_syy) = ((syy / det) as f32, (sxy / syy) as f32, (1.0 / syy) as f32);
         if !(a.is_finite() && k.is_finite() && inv_syy.is_finite()) {
             return None;
         }
+        let eps = f64::from(EPS2D);
 
         let u = self.fx * p_cam.x / z + self.cx;
         let v = self.fy * p_cam.y / z + self.cy;
@@ -194,6 +186,82 @@ impl View {
             y0,
             x1,
             y1,
+        })
+    }
+
+    /// Everything projection computes before the pixel box, in f64, for Gaussian `i`; `None` when
+    /// the forward model skips it (non-finite parameters, opacity under 1/255, zero rotation,
+    /// depth outside `[near, far]`, a 2D covariance that is not positive definite). The backward
+    /// pass differentiates exactly this.
+    pub(super) fn ewa(&self, set: &GaussianSet, i: usize) -> Option<Ewa> {
+        let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
+        let (p, s, q, o, c) = (
+            &set.positions()[i],
+            &set.scales()[i],
+            &set.rotations()[i],
+            set.opacities()[i],
+            &set.colors()[i],
+        );
+        let features_ok = set.features().and_then(|f| f.row(i)).is_none_or(finite);
+        if !(finite(p) && finite(s) && finite(q) && o.is_finite() && finite(c) && features_ok) {
+            return None;
+        }
+        // Alpha never exceeds the opacity: a Gaussian this faint reaches no pixel.
+        if o < ALPHA_MIN {
+            return None;
+        }
+        let q = DQuat::from_xyzw(q[1].into(), q[2].into(), q[3].into(), q[0].into());
+        let norm = q.length();
+        if norm == 0.0 {
+            return None;
+        }
+        let p_cam =
+            self.rotation * DVec3::new(p[0].into(), p[1].into(), p[2].into()) + self.translation;
+        let z = p_cam.z;
+        if !(z >= self.near && z <= self.far) {
+            return None;
+        }
+
+        // EWA: Σ2D = M Mᵀ + EPS2D·I with M = J W R S (2×3). Through M the covariance is positive
+        // semi-definite by construction, and its determinant is |m0 × m1|² (Cauchy–Binet) with no
+        // cancellation, even for a zero scale or a needle seen end on.
+        let tx = (p_cam.x / z).clamp(-self.lim_x, self.lim_x) * z;
+        let ty = (p_cam.y / z).clamp(-self.lim_y, self.lim_y) * z;
+        let j0 = DVec3::new(self.fx / z, 0.0, -self.fx * tx / (z * z));
+        let j1 = DVec3::new(0.0, self.fy / z, -self.fy * ty / (z * z));
+        let unit = q / norm;
+        let rs = DMat3::from_quat(unit)
+            * DMat3::from_diagonal(DVec3::new(s[0].into(), s[1].into(), s[2].into()));
+        let wrs = self.rotation * rs;
+        // Row r of J·W·R·S is (J·W·R·S)ᵀ's column r = (W R S)ᵀ j_r.
+        let m0 = wrs.transpose() * j0;
+        let m1 = wrs.transpose() * j1;
+        let eps = f64::from(EPS2D);
+        let (mxx, myy) = (m0.length_squared(), m1.length_squared());
+        let sxx = mxx + eps;
+        let sxy = m0.dot(m1);
+        let syy = myy + eps;
+        let det = m0.cross(m1).length_squared() + eps * (mxx + myy) + eps * eps;
+        if !(det.is_finite() && det > 0.0) {
+            return None;
+        }
+        Some(Ewa {
+            p_cam,
+            unit,
+            norm,
+            tx,
+            ty,
+            j0,
+            j1,
+            wrs,
+            m0,
+            m1,
+            mxx,
+            myy,
+            sxx,
+            sxy,
+            syy,
+            det,
         })
     }
 }

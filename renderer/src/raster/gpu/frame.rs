@@ -19,7 +19,9 @@ use rayon::prelude::*;
 
 use c4g_scene::{Camera, GaussianSet, SceneError};
 
-use super::super::{FOV_CLAMP, FeatureImage, Footprint, Image, RenderOptions};
+use c4g_scene::Footprint;
+
+use super::super::{FOV_CLAMP, FeatureImage, Image, RenderOptions};
 use super::recorder::{Use, Work};
 use super::sort::{Pairs, bits_for, radix_sort, scan};
 
