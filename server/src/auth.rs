@@ -1,6 +1,11 @@
-//! API-key authentication: `Authorization: Bearer <key>` or `x-api-key: <key>`, compared in
-//! constant time (both sides hashed first, so neither the content nor the length of the key
-//! leaks through timing).
+//! API-key authentication: `Authorization: Bearer <key>` (the scheme in any case, RFC 9110
+//! §11.1) or `x-api-key: <key>`, compared in constant time (both sides hashed first, so neither
+//! the content nor the length of the key leaks through timing).
+//!
+//! Open without a key, like REST's `/health` and `/ready`: the gRPC health service
+//! (`grpc.health.v1.Health`), so that standard probes (Kubernetes' gRPC probe,
+//! `grpc_health_probe`) work on a server with a key. Reflection stays behind the key: it lists
+//! the API, which is the key holder's to see.
 
 use axum::extract::{Request, State};
 use axum::http::HeaderMap;
@@ -44,17 +49,27 @@ impl ApiKey {
         let bearer = headers
             .get("authorization")
             .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.strip_prefix("Bearer "));
+            .and_then(bearer_token);
         let plain = headers.get("x-api-key").and_then(|v| v.to_str().ok());
         bearer.or(plain).is_some_and(|k| self.matches(k.trim()))
     }
 }
 
-/// Middleware: refuses requests without the key (when one is configured). gRPC calls get
-/// `UNAUTHENTICATED` in gRPC's own framing.
+/// The token of an `Authorization` value whose scheme is `Bearer`, in any case.
+fn bearer_token(value: &str) -> Option<&str> {
+    let (scheme, token) = value.split_once(' ')?;
+    scheme.eq_ignore_ascii_case("bearer").then_some(token)
+}
+
+/// The gRPC health service's path prefix: open, for probes.
+const GRPC_HEALTH: &str = "/grpc.health.v1.Health/";
+
+/// Middleware: refuses requests without the key (when one is configured), but for gRPC health
+/// checks. gRPC calls get `UNAUTHENTICATED` in gRPC's own framing.
 pub async fn require_key(State(state): State<AppState>, request: Request, next: Next) -> Response {
+    let open = request.uri().path().starts_with(GRPC_HEALTH);
     match state.api_key() {
-        Some(key) if !key.admits(request.headers()) => {
+        Some(key) if !open && !key.admits(request.headers()) => {
             metrics::counter!("c4g_rejected_total", "reason" => "unauthorized").increment(1);
             if crate::grpc::is_grpc(request.headers()) {
                 status(ServiceError::Unauthorized).into_http()
@@ -118,7 +133,11 @@ mod tests {
             key.admits(&headers)
         };
         assert!(with("authorization", "Bearer s3cret"));
-        assert!(!with("authorization", "bearer s3cret"));
+        // The scheme is case-insensitive (RFC 9110 §11.1); the key is not.
+        assert!(with("authorization", "bearer s3cret"));
+        assert!(with("authorization", "BEARER s3cret"));
+        assert!(!with("authorization", "Bearer S3CRET"));
+        assert!(!with("authorization", "Bearers3cret"));
         assert!(!with("authorization", "Basic s3cret"));
         assert!(!with("authorization", "s3cret"));
         assert!(!with("cookie", "s3cret"));

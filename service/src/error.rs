@@ -249,3 +249,35 @@ fn renderer_kind(error: &SceneError) -> ServiceErrorKind {
         | SceneError::Format { .. } => ServiceErrorKind::InvalidInput,
     }
 }
+/// The most characters an error message quotes of what a request sent (an id, a name, a value):
+/// enough to recognise it, never a request's worth of text echoed back.
+pub const QUOTED_CHARS: usize = 80;
+
+/// `text` quoted for an error message (as `{:?}` quotes it), cut to [`QUOTED_CHARS`] characters
+/// with how long it was when it is longer.
+pub fn quoted(text: &str) -> String {
+    let count = text.chars().count();
+    if count <= QUOTED_CHARS {
+        return format!("{text:?}");
+    }
+    let head: String = text.chars().take(QUOTED_CHARS).collect();
+    format!("{head:?}… ({count} characters)")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn what_a_request_sent_is_quoted_whole_when_short_and_cut_when_long() {
+        assert_eq!(quoted("abc"), "\"abc\"");
+        let longest = "x".repeat(QUOTED_CHARS);
+        assert_eq!(quoted(&longest), format!("{longest:?}"));
+        let long = "é".repeat(10_000);
+        let shown = quoted(&long);
+        let head = "é".repeat(QUOTED_CHARS);
+        assert!(shown.starts_with(&format!("{head:?}")), "{shown}");
+        assert!(shown.ends_with("… (10000 characters)"), "{shown}");
+        assert!(shown.chars().count() < QUOTED_CHARS + 40);
+    }
+}

@@ -12,13 +12,16 @@ use std::sync::OnceLock;
 use std::time::Duration;
 
 /// Every fault point, where it is:
+/// - `video-scratch-written`: an uploaded video is in scratch space, FFmpeg has not read it
+///   (`clips::intake::video`);
 /// - `encode`: an upload's frames are preprocessed, the encoder has not run (`service`);
 /// - `clip-features-written`: a clip's temporary directory holds its record and features, not
 ///   its frames (`store`);
 /// - `clip-stored`: the clip is in place on disk, not yet in the index or answered (`store`);
 /// - `job-result-stored`: a job's refined frames are in place, its record still says running
 ///   (`jobs`).
-pub const POINTS: [&str; 4] = [
+pub const POINTS: [&str; 5] = [
+    "video-scratch-written",
     "encode",
     "clip-features-written",
     "clip-stored",

@@ -24,5 +24,5 @@ pub mod sets;
 pub mod views;
 pub mod work;
 
-pub use error::{ServiceError, ServiceErrorKind};
+pub use error::{QUOTED_CHARS, ServiceError, ServiceErrorKind, quoted};
 pub use service::Service;

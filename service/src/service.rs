@@ -110,12 +110,17 @@ impl Service {
             batcher,
             renderer.footprint(),
         ));
+        let tools = IntakeTools::new(config.ffmpeg.clone(), config.store_dir.join("scratch"));
+        let cleared = tools.clear_scratch();
+        if cleared > 0 {
+            tracing::info!(cleared, "scratch files of an earlier process removed");
+        }
         let views = Arc::new(Views::new(sets.clone(), renderer, limits.clone(), work));
         Ok(Self {
             engine,
             store,
             sets,
-            tools: IntakeTools::new(config.ffmpeg.clone(), config.store_dir.join("scratch")),
+            tools,
             limits,
             jobs,
             job_videos: config.store_dir.join(&model_key).join("job-videos"),

@@ -98,7 +98,10 @@ fn the_same_upload_is_the_same_clip_and_is_encoded_once() {
         assert!(span.1 > span.0, "four timed frames span time: {span:?}");
         let (again, _, created) = upload(&service).await;
         assert_eq!(again, first);
-        assert!(!created, "the second upload of the same bytes finds the clip");
+        assert!(
+            !created,
+            "the second upload of the same bytes finds the clip"
+        );
     });
 }
 
@@ -166,7 +169,12 @@ fn a_time_outside_the_clip_is_refused_before_any_work() {
             .await
             .unwrap_err();
         assert_eq!(error.kind(), ServiceErrorKind::InvalidInput);
-        assert!(error.to_string().contains("outside the clip's context span"), "{error}");
+        assert!(
+            error
+                .to_string()
+                .contains("outside the clip's context span"),
+            "{error}"
+        );
     });
 }
 
@@ -215,7 +223,9 @@ fn a_view_and_every_frame_of_a_path_render_the_sets_the_set_source_gives() {
         };
         let rendered = service
             .views
-            .render_path_all(&id, &path, &QualitySpec::default(), |t, image| Ok((t, image)))
+            .render_path_all(&id, &path, &QualitySpec::default(), |t, image| {
+                Ok((t, image))
+            })
             .await
             .unwrap();
         let plan = service.views.plan_path(&record, &path).unwrap();
@@ -228,10 +238,14 @@ fn a_view_and_every_frame_of_a_path_render_the_sets_the_set_source_gives() {
             .decode(&id, times, QualitySpec::default())
             .await
             .unwrap();
-        for ((t, image), ((_, set), (planned, camera))) in rendered.iter().zip(sets.iter().zip(&plan))
+        for ((t, image), ((_, set), (planned, camera))) in
+            rendered.iter().zip(sets.iter().zip(&plan))
         {
             assert_eq!(t, planned);
-            assert_eq!(image, &service.views.render_now(set, camera, [0.0; 3]).unwrap());
+            assert_eq!(
+                image,
+                &service.views.render_now(set, camera, [0.0; 3]).unwrap()
+            );
         }
     });
 }
@@ -266,5 +280,48 @@ fn a_deleted_clip_is_gone_from_every_layer() {
         assert_eq!(render.kind(), ServiceErrorKind::NotFound);
         let frame = service.store.context_frame_png(&id, 0).await.unwrap_err();
         assert_eq!(frame.kind(), ServiceErrorKind::NotFound);
+    });
+}
+
+#[test]
+fn a_request_that_races_a_delete_is_served_or_not_found_and_writes_nothing_back() {
+    if !ready() {
+        return;
+    }
+    use c4g_service::views::recovery::RecoverOptions;
+    let (service, _store) = service();
+    runtime().block_on(async {
+        // The delete lands before, during and after the recovery's reads and its write.
+        for delay_ms in [0, 5, 20, 80, 300] {
+            let (id, _, _) = upload(&service).await;
+            let recovering = {
+                let (service, id) = (service.clone(), id.clone());
+                tokio::spawn(async move {
+                    service
+                        .views
+                        .recover_cameras(&id, RecoverOptions::default())
+                        .await
+                })
+            };
+            let framing = {
+                let (service, id) = (service.clone(), id.clone());
+                tokio::spawn(async move { service.store.context_frame_png(&id, 3).await })
+            };
+            tokio::time::sleep(std::time::Duration::from_millis(delay_ms)).await;
+            service.delete(&id).await.unwrap();
+            let recovered = recovering.await.unwrap();
+            if let Err(e) = &recovered {
+                assert_eq!(e.kind(), ServiceErrorKind::NotFound, "{delay_ms} ms: {e}");
+            }
+            if let Err(e) = framing.await.unwrap() {
+                assert_eq!(e.kind(), ServiceErrorKind::NotFound, "{delay_ms} ms: {e}");
+            }
+            let place = service.store.clip_file(&id, "recovered-cameras.json");
+            assert!(
+                !place.exists(),
+                "{delay_ms} ms: written into a deleted clip's place"
+            );
+            assert!(!place.parent().unwrap().exists(), "{delay_ms} ms");
+        }
     });
 }

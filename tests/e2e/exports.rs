@@ -1,14 +1,14 @@
 //! The 4D exports (`POST /v1/clips/{id}/export`) read back by readers that are not ours, against
 //! the exact sets the service decodes at the same times.
 //!
-//! - `.ply.zip`: Python's `zipfile` and `plyfile` (PyPI), `models/python/c4g/frames_zip.py`. The
+//! - `.ply.zip`: Python's `zipfile` and `plyfile` (PyPI), `models/python/c4g/formats/frames_zip.py`. The
 //!   PLY columns are f32 (positions as they are; opacity as a logit, scales as logarithms, colour
 //!   as SH DC): the only error is f32 rounding of those transforms, within [`PLY_SLACK`].
 //! - `.spz.zip`: the archive opened with the `zip` crate (a container only), each `.spz` read by
 //!   Niantic's reference library, `@adobe/spz` (npm, the WebAssembly build of nianticlabs/spz), in
 //!   `tests/browser/spz.mjs`. Tolerances: the quantisation bounds `formats/src/spz.rs`
 //!   states, per attribute.
-//! - `.splatv`: `models/python/c4g/splatv.py`, a reader written from the format's specification
+//! - `.splatv`: `models/python/c4g/formats/splatv.py`, a reader written from the format's specification
 //!   (splaTV's viewer) apart from the Rust writer, evaluated at each exported time. The file is a
 //!   fit (a cubic path, a linear spin, one opacity bump per Gaussian), so the reference is the fit
 //!   error the server states with the file (`X-C4G-Fit-Position-Error`), and the render PSNR of
@@ -224,7 +224,7 @@ fn every_export_reads_back_with_an_independent_reader() {
     std::fs::write(&ply_path, &ply_zip).unwrap();
     let read = read_with(
         Command::new(&python)
-            .args(["-m", "c4g.frames_zip"])
+            .args(["-m", "c4g.formats.frames_zip"])
             .arg(&ply_path)
             .current_dir(workspace().join("models/python")),
     );
@@ -310,7 +310,7 @@ fn every_export_reads_back_with_an_independent_reader() {
         .join(",");
     let read = read_with(
         Command::new(&python)
-            .args(["-m", "c4g.splatv"])
+            .args(["-m", "c4g.formats.splatv"])
             .arg(&splatv_path)
             .args(["--times", &list])
             .current_dir(workspace().join("models/python")),

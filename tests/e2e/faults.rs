@@ -440,6 +440,52 @@ fn crash_uploading_at(point: &str) -> Crash {
 }
 
 #[test]
+fn a_server_killed_while_reading_a_video_leaves_no_scratch_file_once_restarted() {
+    if !ort_available() {
+        return;
+    }
+    let store = tempfile::tempdir().unwrap();
+    let video = store.path().join("clip.mp4");
+    let made = Command::new("ffmpeg")
+        .args(["-v", "error", "-f", "lavfi", "-i"])
+        .arg("testsrc=size=64x64:rate=10:duration=1")
+        .args(["-pix_fmt", "yuv420p"])
+        .arg(&video)
+        .status()
+        .unwrap();
+    assert!(made.success());
+    let scratch = store.path().join("scratch");
+    let args = ["--fault-pause", "video-scratch-written"];
+    for _ in 0..2 {
+        let paused = ServerProcess::start(store.path(), ANY_PORT, &args);
+        let (url, body) = (paused.at("/v1/clips"), std::fs::read(&video).unwrap());
+        // Its answer never comes: the server dies first.
+        std::thread::spawn(move || {
+            let _ = Client::new()
+                .post(url)
+                .body(body)
+                .timeout(Duration::from_secs(300))
+                .send();
+        });
+        paused.wait_for_log(
+            "fault point video-scratch-written reached",
+            Duration::from_secs(120),
+        );
+        assert_eq!(names(&scratch).len(), 1, "the upload is in scratch space");
+        paused.kill();
+    }
+    // Each killed read left its upload, and each start removed the one before: one is left.
+    assert_eq!(
+        names(&scratch).len(),
+        1,
+        "the second start kept the first kill's upload"
+    );
+    let server = ServerProcess::start(store.path(), ANY_PORT, &[]);
+    assert!(names(&scratch).is_empty(), "{:?}", names(&scratch));
+    upload_new(&server, 1.0);
+}
+
+#[test]
 fn a_server_killed_while_encoding_keeps_the_stored_clips_and_nothing_of_the_new_one() {
     if !ort_available() {
         return;

@@ -4,7 +4,7 @@
 //! `RecoverCameras` and `c4g cameras --recover` give the same cameras; and, on a synthetic
 //! orbit with known cameras, renders at the recovered cameras match the frames at least as well,
 //! within 1 dB, as renders at the true ones (issue #17's acceptance; the per-frame pose errors
-//! are measured by `python -m c4g.eval_cameras`, `docs/benchmarks.md`).
+//! are measured by `python -m c4g.eval.cameras`, `docs/benchmarks.md`).
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
 use std::path::PathBuf;

@@ -15,6 +15,7 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+use c4g_e2e::health::{HealthClient, pb_health};
 use c4g_e2e::{Server, binary, expect_error, ort_available, upload_synthetic, workspace};
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
@@ -614,6 +615,15 @@ fn api_keys_guard_both_transports_and_no_key_reaches_the_log() {
     let status = |request: reqwest::blocking::RequestBuilder| request.send().unwrap().status();
 
     assert_eq!(status(client.get(url("/v1/clips")).bearer_auth(key)), 200);
+    // The scheme is case-insensitive (RFC 9110 §11.1), the key is not.
+    for scheme in ["bearer", "BEARER", "BeArEr"] {
+        let header = format!("{scheme} {key}");
+        assert_eq!(
+            status(client.get(url("/v1/clips")).header("authorization", header)),
+            200,
+            "{scheme}"
+        );
+    }
     assert_eq!(
         status(client.get(url("/v1/clips")).header("x-api-key", key)),
         200
@@ -680,6 +690,35 @@ fn api_keys_guard_both_transports_and_no_key_reaches_the_log() {
         }
         let refused = grpc.list_clips(call(None)).await.unwrap_err();
         assert_eq!(refused.code(), tonic::Code::Unauthenticated);
+        assert!(
+            grpc.list_clips(call(Some(format!("bearer {key}"))))
+                .await
+                .is_ok()
+        );
+        // Reflection, both versions, lists the services to the key holder and to no one else.
+        let url = format!("http://{}", server.addr);
+        let bearer = format!("Bearer {key}");
+        for version in ["v1", "v1alpha"] {
+            let listed = list_services(&url, version, Some(&bearer)).await.unwrap();
+            for service in ["c4g.v1.C4G", "c4g.v1.Jobs", "grpc.health.v1.Health"] {
+                assert!(listed.iter().any(|s| s == service), "{version}: {listed:?}");
+            }
+            let refused = list_services(&url, version, None).await.unwrap_err();
+            assert_eq!(refused.code(), tonic::Code::Unauthenticated, "{version}");
+        }
+        // Health is open to probes without the key; everything else on gRPC is not.
+        let mut health = HealthClient::connect(&format!("http://{}", server.addr)).await;
+        let serving = health
+            .check(pb_health::HealthCheckRequest {
+                service: "c4g.v1.C4G".into(),
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(
+            serving.status,
+            pb_health::health_check_response::ServingStatus::Serving as i32
+        );
     });
     drop(server);
 
@@ -693,4 +732,47 @@ fn api_keys_guard_both_transports_and_no_key_reaches_the_log() {
         !log.contains(&key[..key.len() - 1]),
         "a near miss of the key reached the log"
     );
+}
+
+/// The services reflection `version` ("v1" or "v1alpha") lists, asked with `authorization`.
+async fn list_services(
+    url: &str,
+    version: &str,
+    authorization: Option<&str>,
+) -> Result<Vec<String>, tonic::Status> {
+    let channel = tonic::transport::Endpoint::from_shared(url.to_owned())
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    // The two versions are the same protocol under two package names.
+    macro_rules! list {
+        ($pb:path) => {{
+            use $pb as pb;
+            let ask = pb::ServerReflectionRequest {
+                host: String::new(),
+                message_request: Some(pb::server_reflection_request::MessageRequest::ListServices(
+                    String::new(),
+                )),
+            };
+            let mut request = tonic::Request::new(tokio_stream::iter([ask]));
+            if let Some(value) = authorization {
+                request
+                    .metadata_mut()
+                    .insert("authorization", value.parse().unwrap());
+            }
+            let mut client = pb::server_reflection_client::ServerReflectionClient::new(channel);
+            let mut answers = client.server_reflection_info(request).await?.into_inner();
+            match answers.message().await?.and_then(|a| a.message_response) {
+                Some(pb::server_reflection_response::MessageResponse::ListServicesResponse(
+                    list,
+                )) => Ok(list.service.into_iter().map(|s| s.name).collect()),
+                other => panic!("reflection {version} answered {other:?}"),
+            }
+        }};
+    }
+    match version {
+        "v1" => list!(tonic_reflection::pb::v1),
+        _ => list!(tonic_reflection::pb::v1alpha),
+    }
 }

@@ -17,6 +17,7 @@ use c4g_service::ServiceError;
 use c4g_service::clips::intake::cameras::{CameraInput, parse_names};
 use c4g_service::clips::intake::{IntakeOptions, Media, MediaKind};
 use c4g_service::clips::record::ClipRecord;
+use c4g_service::quoted;
 
 /// A clip as the API shows it.
 pub fn clip_json(record: &ClipRecord, created: Option<bool>) -> Value {
@@ -151,10 +152,12 @@ async fn read_multipart(
 /// Upload options from query or multipart fields, every value checked.
 fn parse_options(fields: &[(String, String)]) -> Result<IntakeOptions, ServiceError> {
     fn number<T: std::str::FromStr>(name: &str, value: &str) -> Result<T, ServiceError> {
-        value
-            .trim()
-            .parse()
-            .map_err(|_| ServiceError::invalid(format!("`{name}` must be a number, got {value:?}")))
+        value.trim().parse().map_err(|_| {
+            ServiceError::invalid(format!(
+                "`{name}` must be a number, got {value_quoted}",
+                value_quoted = quoted(&value)
+            ))
+        })
     }
     let mut options = IntakeOptions::default();
     let mut cameras = CameraFields::default();
@@ -253,7 +256,8 @@ fn timestamps(value: &str) -> Result<Vec<f64>, ServiceError> {
                 Ok(t) if is_decimal(item) => Ok(t),
                 _ => Err(ServiceError::invalid(format!(
                     "timestamps must be comma-separated decimal numbers of seconds (0,0.1,0.25), \
-                     got {item:?}"
+                     got {item_quoted}",
+                    item_quoted = quoted(&item)
                 ))),
             }
         })

@@ -18,6 +18,7 @@ use crate::error::ErrorReply;
 use c4g_service::ServiceError;
 use c4g_service::jobs::JobState;
 use c4g_service::jobs::refine::RefineRequest;
+use c4g_service::quoted;
 use c4g_service::views::image_formats::encode_mp4;
 
 pub async fn submit(
@@ -131,7 +132,8 @@ fn result_frame(query: Option<&str>) -> Result<Option<usize>, ServiceError> {
         if name == "frame" {
             frame = Some(json::decimal(&value).ok_or_else(|| {
                 ServiceError::invalid(format!(
-                    "frame must be a refined frame's index (0, 1, ...), got {value:?}"
+                    "frame must be a refined frame's index (0, 1, ...), got {value_quoted}",
+                    value_quoted = quoted(&value)
                 ))
             })?);
         }

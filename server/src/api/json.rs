@@ -23,6 +23,7 @@ use serde_json::Value;
 
 use c4g_service::ServiceError;
 use c4g_service::clips::intake::cameras::{FOCAL_BOUND, SMALLEST_LENGTH};
+use c4g_service::quoted;
 use c4g_service::views::camera::{SCENE_BOUND, check_preset, within};
 
 use crate::error::ErrorReply;
@@ -284,8 +285,7 @@ impl<S: Send + Sync> FromRequestParts<S> for ClipId {
             Ok(Self(id))
         } else {
             Err(ServiceError::NotFound(format!(
-                "no clip {id:?}: clip ids are 24 lowercase hex digits (GET /v1/clips lists them)"
-            ))
+                "no clip {id_quoted}: clip ids are 24 lowercase hex digits (GET /v1/clips lists them)", id_quoted = quoted(&id)))
             .into())
         }
     }
@@ -300,8 +300,9 @@ impl<S: Send + Sync> FromRequestParts<S> for JobId {
             Ok(Self(id))
         } else {
             Err(ServiceError::NotFound(format!(
-                "no job {id:?}: job ids are `job-` and 20 lowercase hex digits (GET /v1/jobs \
-                 lists them)"
+                "no job {id_quoted}: job ids are `job-` and 20 lowercase hex digits (GET /v1/jobs \
+                 lists them)",
+                id_quoted = quoted(&id)
             ))
             .into())
         }
@@ -345,7 +346,8 @@ impl<S: Send + Sync> FromRequestParts<S> for FrameIndex {
             .ok_or_else(|| ServiceError::Internal("the route has no frame index".into()))?;
         decimal(&raw).map(Self).ok_or_else(|| {
             ServiceError::NotFound(format!(
-                "no context frame {raw:?}: frames are numbered 0, 1, ..."
+                "no context frame {raw_quoted}: frames are numbered 0, 1, ...",
+                raw_quoted = quoted(&raw)
             ))
             .into()
         })

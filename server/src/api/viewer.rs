@@ -12,6 +12,7 @@ use axum::response::{IntoResponse, Response};
 
 use crate::error::ErrorReply;
 use c4g_service::ServiceError;
+use c4g_service::quoted;
 
 /// The page.
 const INDEX: &str = include_str!("../../viewer/index.html");
@@ -53,7 +54,13 @@ pub async fn asset(Path(name): Path<String>) -> Result<Response, ErrorReply> {
         .iter()
         .find(|(file, _, _)| *file == name)
         .map(|(_, content_type, body)| file(content_type, body))
-        .ok_or_else(|| ServiceError::NotFound(format!("the viewer has no file {name:?}")).into())
+        .ok_or_else(|| {
+            ServiceError::NotFound(format!(
+                "the viewer has no file {name_quoted}",
+                name_quoted = quoted(&name)
+            ))
+            .into()
+        })
 }
 
 fn file(content_type: &'static str, body: &'static str) -> Response {

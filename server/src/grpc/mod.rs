@@ -1,5 +1,5 @@
 //! The gRPC service `c4g.v1.C4G`: the same operations as the REST API, over HTTP/2 on the same
-//! port, plus `grpc.health.v1` and reflection.
+//! port, plus `grpc.health.v1` and reflection (v1 and v1alpha).
 
 use axum::http::HeaderMap;
 use c4g_proto::v1 as pb;
@@ -48,13 +48,20 @@ pub fn routes(state: AppState) -> tonic::service::Routes {
     let mut routes = tonic::service::Routes::new(service)
         .add_service(crate::workers::service(state_for_workers))
         .add_service(health);
-    match tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(c4g_proto::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()
-    {
-        Ok(reflection) => routes = routes.add_service(reflection),
-        Err(e) => tracing::warn!("gRPC reflection unavailable: {e}"),
+    // Reflection in both versions: v1, and v1alpha, which pip's grpcio-reflection and older
+    // grpcurl, Evans and Postman builds speak.
+    let reflection = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(c4g_proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    match reflection().build_v1() {
+        Ok(v1) => routes = routes.add_service(v1),
+        Err(e) => tracing::warn!("gRPC reflection v1 unavailable: {e}"),
+    }
+    match reflection().build_v1alpha() {
+        Ok(v1alpha) => routes = routes.add_service(v1alpha),
+        Err(e) => tracing::warn!("gRPC reflection v1alpha unavailable: {e}"),
     }
     routes
 }

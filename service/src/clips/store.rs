@@ -42,6 +42,7 @@ use crate::clips::durable::{sync_dir, write_synced};
 use crate::clips::record::ClipRecord;
 use crate::clips::shared::{Claim, RECHECK, SHARED_MARK, SharedClips};
 use crate::faults;
+use crate::quoted;
 
 /// A freshly encoded clip, for [`ClipStore::get_or_create`].
 pub struct NewClip {
@@ -95,7 +96,10 @@ impl ClipStore {
         let mut bytes = Vec::new();
         std::fs::File::open(self.frame_path(id, index))
             .and_then(|mut f| f.read_to_end(&mut bytes))
-            .map_err(|e| ServiceError::Internal(format!("cannot read a context frame: {e}")))?;
+            .map_err(|e| {
+                let error = ServiceError::Internal(format!("cannot read a context frame: {e}"));
+                self.unless_gone(id, error)
+            })?;
         Ok(bytes)
     }
 
@@ -310,6 +314,16 @@ impl ClipStore {
         let mut all: Vec<_> = self.lock().records.values().cloned().collect();
         all.sort_by(|a, b| (a.created_at, &a.id).cmp(&(b.created_at, &b.id)));
         all
+    }
+
+    /// `error`, or `not_found` when clip `id` is no longer stored: a request that found the clip
+    /// and then failed on its files lost a race with a delete, which is the client's 404, not the
+    /// server's 500.
+    pub fn unless_gone(&self, id: &str, error: ServiceError) -> ServiceError {
+        match self.get(id) {
+            Ok(_) => error,
+            Err(gone) => gone,
+        }
     }
 
     /// One clip's record.
@@ -560,7 +574,8 @@ fn is_clip_id(id: &str) -> bool {
 
 fn not_found(id: &str) -> ServiceError {
     ServiceError::NotFound(format!(
-        "no clip {id:?}: upload it with POST /v1/clips (GET /v1/clips lists the stored ones)"
+        "no clip {id_quoted}: upload it with POST /v1/clips (GET /v1/clips lists the stored ones)",
+        id_quoted = quoted(&id)
     ))
 }
 

@@ -26,6 +26,7 @@ use tokio::sync::watch;
 
 use crate::ServiceError;
 use crate::clips::record::now;
+use crate::quoted;
 
 pub mod disk;
 pub mod postgres;
@@ -261,5 +262,8 @@ pub fn prune_videos(dir: &Path, age: Duration) -> usize {
 }
 
 fn not_found(id: &str) -> ServiceError {
-    ServiceError::NotFound(format!("no job {id:?} (GET /v1/jobs lists them)"))
+    ServiceError::NotFound(format!(
+        "no job {id_quoted} (GET /v1/jobs lists them)",
+        id_quoted = quoted(&id)
+    ))
 }

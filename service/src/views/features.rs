@@ -22,7 +22,7 @@
 //! frames are, be part of the clip's content address and live in the store beside the features;
 //! that is an intake feature of its own, and the default package does not need it (c4g-tiny lifts
 //! its encoder's features; `models/c4g-tiny-objects`, which lifts object ids, is scored offline by
-//! `c4g.segmentation`).
+//! `c4g.eval.segmentation`).
 
 use std::sync::Arc;
 

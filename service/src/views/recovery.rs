@@ -91,16 +91,18 @@ impl Views {
         let record = self.store.get_or_fetch(id).await?;
         let times = record.context_times.clone();
         let sets = self.sets.decode(id, times, Default::default()).await?;
-        let id = id.to_owned();
+        let owned = id.to_owned();
         self.work(move |views| {
             let targets = (0..record.context_times.len())
-                .map(|k| views.model_view(&id, k))
+                .map(|k| views.model_view(&owned, k))
                 .collect::<Result<Vec<_>, _>>()?;
             let recovered = views.align_frames(&record, &sets, &targets, options)?;
-            views.keep_recovered(&id, &recovered)?;
+            views.keep_recovered(&owned, &recovered)?;
             Ok(recovered)
         })
         .await
+        // Its frames read, or its cameras kept, after a delete: the clip is gone, not broken.
+        .map_err(|e| self.store.unless_gone(id, e))
     }
 
     /// The recovered cameras kept with clip `id`, if any.

@@ -22,6 +22,7 @@ use super::sampling::select;
 use super::sniff::MediaKind;
 use crate::ServiceError;
 use crate::config::Limits;
+use crate::quoted;
 
 /// Largest ratio of inflated to compressed size an archive entry may claim. Image files are
 /// already compressed: real frames inflate by a few percent, bombs by thousands of times.
@@ -86,7 +87,13 @@ pub fn read(
             })
         })
         .collect::<Result<Vec<_>, ServiceError>>()?;
-    let fps = options.fps.unwrap_or(DEFAULT_IMAGE_FPS);
+    // The rate the frames' times say: the stated fps, else the timestamps' own (one over their
+    // median step), else the default for untimed frames.
+    let fps = match (options.fps, &options.timestamps) {
+        (Some(fps), _) => fps,
+        (None, Some(_)) => frame_step(&times, 0.0).map_or(DEFAULT_IMAGE_FPS, |step| 1.0 / step),
+        (None, None) => DEFAULT_IMAGE_FPS,
+    };
     Ok(Intake {
         frames,
         source: SourceInfo {
@@ -141,13 +148,15 @@ fn is_contained(name: &str) -> bool {
 
 fn escaping(kind: &str, name: &str) -> ServiceError {
     ServiceError::UnreadableMedia(format!(
-        "{kind} entry {name:?} names a path outside the archive: refused"
+        "{kind} entry {name_quoted} names a path outside the archive: refused",
+        name_quoted = quoted(&name)
     ))
 }
 
 fn link(kind: &str, name: &str) -> ServiceError {
     ServiceError::UnreadableMedia(format!(
-        "{kind} entry {name:?} is a link: an archive of frames holds regular files only"
+        "{kind} entry {name_quoted} is a link: an archive of frames holds regular files only",
+        name_quoted = quoted(&name)
     ))
 }
 
@@ -252,14 +261,34 @@ fn dimensions(bytes: &[u8]) -> Result<(u32, u32), image::ImageError> {
     reader(bytes)?.into_dimensions()
 }
 
+/// Decodes a frame whole or not at all. PNG's decoder refuses a file cut short; JPEG's fills
+/// the missing rows with grey and succeeds, so a JPEG is first held to its own end: the
+/// end-of-image marker after its last scan (a thumbnail's markers come before the main
+/// image's scans, and a scan's data never holds `FF D9`, since JPEG stuffs every `FF` in it).
 fn decode(bytes: &[u8], limits: &Limits) -> Result<RgbImage, image::ImageError> {
     let mut reader = reader(bytes)?;
+    if reader.format() == Some(image::ImageFormat::Jpeg) && !jpeg_is_whole(bytes) {
+        return Err(image::ImageError::Decoding(
+            image::error::DecodingError::new(
+                image::error::ImageFormatHint::Exact(image::ImageFormat::Jpeg),
+                "the JPEG is cut short (no end-of-image marker after its last scan): truncated or \
+             corrupt",
+            ),
+        ));
+    }
     let mut image_limits = image::Limits::default();
     image_limits.max_image_width = Some(limits.max_side);
     image_limits.max_image_height = Some(limits.max_side);
     image_limits.max_alloc = Some(u64::from(limits.max_side).pow(2) * 8);
     reader.limits(image_limits);
     Ok(reader.decode()?.to_rgb8())
+}
+
+/// Whether a JPEG's last scan is followed by its end-of-image marker (`FF DA` starts a scan,
+/// `FF D9` ends the image).
+fn jpeg_is_whole(bytes: &[u8]) -> bool {
+    let last_scan = bytes.windows(2).rposition(|w| w == [0xFF, 0xDA]);
+    last_scan.is_some_and(|at| bytes[at..].windows(2).any(|w| w == [0xFF, 0xD9]))
 }
 
 #[cfg(test)]
@@ -327,6 +356,61 @@ mod tests {
     fn refusal<T: std::fmt::Debug>(result: Result<T, ServiceError>) -> (String, ServiceError) {
         let e = result.unwrap_err();
         (e.to_string(), e)
+    }
+
+    fn jpeg(width: u32, height: u32) -> Vec<u8> {
+        let mut bytes = Vec::new();
+        RgbImage::from_fn(width, height, |x, y| {
+            image::Rgb([(x * 6) as u8, (y * 8) as u8, ((x * y) % 251) as u8])
+        })
+        .write_to(&mut Cursor::new(&mut bytes), image::ImageFormat::Jpeg)
+        .unwrap();
+        bytes
+    }
+
+    #[test]
+    fn a_frame_cut_short_is_refused_whatever_its_format() {
+        let limits = Limits::default();
+        // Large enough that most of either file is pixel data, after the headers.
+        for (format, whole) in [("PNG", png(200, 150)), ("JPEG", jpeg(200, 150))] {
+            assert!(decode(&whole, &limits).is_ok(), "{format}");
+            // Cut after its header: the sizes still read, the pixels do not all arrive.
+            let cut = &whole[..whole.len() * 2 / 3];
+            assert!(dimensions(cut).is_ok(), "{format}");
+            assert!(decode(cut, &limits).is_err(), "{format}");
+        }
+        let cut = jpeg(40, 30);
+        let e = decode(&cut[..cut.len() - 2], &limits)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("cut short"), "{e}");
+        // Bytes after the end-of-image marker are not a cut.
+        let mut padded = jpeg(40, 30);
+        padded.extend_from_slice(&[0; 64]);
+        assert!(decode(&padded, &limits).is_ok());
+    }
+
+    #[test]
+    fn the_source_rate_is_what_the_frames_times_say() {
+        let frames = || Media::Frames((0..3).map(|_| Bytes::from(png(16, 16))).collect());
+        let read_with = |options: IntakeOptions| {
+            read(frames(), MediaKind::Image, &options, &Limits::default()).unwrap()
+        };
+        let timed = read_with(IntakeOptions {
+            timestamps: Some(vec![0.0, 1.0, 2.0]),
+            ..IntakeOptions::default()
+        });
+        assert_eq!(timed.source.fps, 1.0);
+        assert_eq!(timed.frame_step, Some(1.0));
+        let stated = read_with(IntakeOptions {
+            fps: Some(25.0),
+            ..IntakeOptions::default()
+        });
+        assert_eq!(stated.source.fps, 25.0);
+        assert_eq!(
+            read_with(IntakeOptions::default()).source.fps,
+            DEFAULT_IMAGE_FPS
+        );
     }
 
     #[test]

@@ -170,6 +170,24 @@ impl IntakeTools {
             scratch,
         }
     }
+
+    /// Empties scratch space, and says how many entries went. Called when the service starts:
+    /// no request of this process owns anything there yet, and what a killed process was
+    /// reading (a whole upload each) would otherwise stay for good.
+    pub fn clear_scratch(&self) -> usize {
+        let Ok(entries) = std::fs::read_dir(&self.scratch) else {
+            return 0;
+        };
+        entries
+            .flatten()
+            .filter(|entry| {
+                let path = entry.path();
+                std::fs::remove_file(&path)
+                    .or_else(|_| std::fs::remove_dir_all(&path))
+                    .is_ok()
+            })
+            .count()
+    }
 }
 
 /// The content address of an upload: the same media read with the same options for the same

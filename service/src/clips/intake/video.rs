@@ -56,6 +56,7 @@ pub async fn read(
     tokio::fs::write(file.path(), &data)
         .await
         .map_err(|e| ServiceError::storage("cannot write the upload to a scratch file", &e))?;
+    crate::faults::pause("video-scratch-written");
     let deadline = tokio::time::Instant::now() + limits.intake_timeout;
     let work = async {
         let stream = probe(file.path(), kind, tools).await?;

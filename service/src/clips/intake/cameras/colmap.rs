@@ -20,6 +20,7 @@ use glam::DVec3;
 use super::pose::{GivenCamera, Intrinsics};
 use super::{Parsed, frame_order};
 use crate::ServiceError;
+use crate::quoted;
 
 /// A camera of `cameras.txt`: intrinsics, and the distortion it had.
 struct Lens {
@@ -101,7 +102,8 @@ fn number(file: &str, line: usize, field: &str, text: &str) -> Result<f64, Servi
     match text.parse::<f64>() {
         Ok(v) if v.is_finite() => Ok(v),
         _ => Err(ServiceError::invalid(format!(
-            "{file} line {line}: {field} must be a finite number, got {text:?}"
+            "{file} line {line}: {field} must be a finite number, got {text_quoted}",
+            text_quoted = quoted(&text)
         ))),
     }
 }
@@ -109,7 +111,8 @@ fn number(file: &str, line: usize, field: &str, text: &str) -> Result<f64, Servi
 fn id(file: &str, line: usize, field: &str, text: &str) -> Result<u64, ServiceError> {
     text.parse().map_err(|_| {
         ServiceError::invalid(format!(
-            "{file} line {line}: {field} must be a whole number, got {text:?}"
+            "{file} line {line}: {field} must be a whole number, got {text_quoted}",
+            text_quoted = quoted(&text)
         ))
     })
 }

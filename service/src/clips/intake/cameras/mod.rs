@@ -25,6 +25,7 @@ mod pose;
 use sha2::{Digest, Sha256};
 
 use crate::ServiceError;
+use crate::quoted;
 pub use input_path::{InputCamera, input_camera};
 pub use model_frame::{ClipCameras, ContextCamera, ScaleFit};
 pub use pose::{FOCAL_BOUND, GivenCamera, Intrinsics, SMALLEST_LENGTH};
@@ -215,9 +216,10 @@ fn frame_order(
             .map(|(frame, name)| {
                 available.iter().position(|a| a == name).ok_or_else(|| {
                     ServiceError::invalid(format!(
-                        "camera_names[{frame}] is {name:?}, which {what} does not have \
+                        "camera_names[{frame}] is {name_quoted}, which {what} does not have \
                              (it has {} images)",
-                        available.len()
+                        available.len(),
+                        name_quoted = quoted(&name)
                     ))
                 })
             })
