@@ -13,8 +13,8 @@
 #![no_main]
 
 use c4g_formats::{c4gs, c4gv, frames_zip, ply, splat, splatv, spz};
-use c4g_scene::{Camera, GaussianSet, NormalizedIntrinsics};
 use c4g_renderer::{CpuRasterizer, Rasterizer, RenderOptions};
+use c4g_scene::{Camera, GaussianSet, NormalizedIntrinsics};
 
 fn renders_finite(set: &GaussianSet) {
     let camera = Camera::from_normalized(
