@@ -126,31 +126,79 @@ pub async fn encode_mp4(
                 ffmpeg.display()
             ))
         })?;
+    // A write that fails (FFmpeg gone: a full disk stops it mid-video) is judged by what FFmpeg
+    // said, once it has ended, not by the broken pipe it leaves.
+    let mut fed = Ok(());
     if let Some(mut stdin) = child.stdin.take() {
         for frame in frames {
-            stdin
-                .write_all(frame)
-                .await
-                .map_err(|e| ServiceError::Internal(format!("feeding ffmpeg: {e}")))?;
+            if let Err(e) = stdin.write_all(frame).await {
+                fed = Err(e);
+                break;
+            }
         }
     }
     let output = child
         .wait_with_output()
         .await
         .map_err(|e| ServiceError::Internal(format!("waiting for ffmpeg: {e}")))?;
-    if !output.status.success() {
+    if !output.status.success() || fed.is_err() {
         let log = String::from_utf8_lossy(&output.stderr);
         // FFmpeg says ENOSPC in words only: a full scratch disk is the client's 507, not a 500.
         if log.contains("No space left on device") {
             let full = std::io::Error::from(std::io::ErrorKind::StorageFull);
             return Err(ServiceError::storage("cannot write the video", &full));
         }
+        let fed = fed.err().map(|e| format!("feeding it failed ({e}); "));
         return Err(ServiceError::Internal(format!(
-            "ffmpeg could not encode the video: {}",
+            "ffmpeg could not encode the video: {}{}",
+            fed.unwrap_or_default(),
             log.trim()
         )));
     }
     tokio::fs::read(out.path())
         .await
         .map_err(|e| ServiceError::Internal(format!("reading the encoded video: {e}")))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A stand-in for FFmpeg on a full disk (the real one cannot be made to fill a disk here
+    /// without filling this machine's): it reads a little of the video, says what FFmpeg says on
+    /// ENOSPC, and exits, so the service's later writes meet a closed pipe.
+    fn ffmpeg_on_a_full_disk(dir: &Path) -> std::path::PathBuf {
+        use std::os::unix::fs::PermissionsExt;
+        let path = dir.join("ffmpeg");
+        std::fs::write(
+            &path,
+            "#!/bin/sh\nhead -c 16 >/dev/null\necho 'out.mp4: No space left on device' >&2\nexit 1\n",
+        )
+        .unwrap();
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o755)).unwrap();
+        path
+    }
+
+    #[tokio::test]
+    async fn a_video_that_meets_a_full_disk_is_insufficient_storage_even_mid_feed() {
+        let dir = tempfile::tempdir().unwrap();
+        let ffmpeg = ffmpeg_on_a_full_disk(dir.path());
+        // Far more than a pipe buffers: the feed is still going when the stand-in exits.
+        let frames = vec![vec![0u8; 512 * 512 * 3]; 8];
+        let e = encode_mp4(
+            &ffmpeg,
+            &dir.path().join("scratch"),
+            &frames,
+            512,
+            512,
+            10.0,
+        )
+        .await
+        .unwrap_err();
+        assert_eq!(
+            e.kind(),
+            crate::ServiceErrorKind::InsufficientStorage,
+            "{e}"
+        );
+    }
 }
