@@ -12,7 +12,7 @@
 
 use rayon::prelude::*;
 
-use c4g_renderer::fidelity::{SSIM_K1, SSIM_K2, SSIM_SIGMA, SSIM_WINDOW};
+use c4g_renderer::fidelity::{SSIM_K1, SSIM_K2, SSIM_WINDOW, filter_valid, ssim_window};
 use c4g_scene::SceneError;
 
 /// A loss's value and its gradient with respect to the render's RGB (3 floats a pixel).
@@ -77,7 +77,7 @@ pub fn dssim(
         )));
     }
     let (vw, vh) = (w + 1 - SSIM_WINDOW, h + 1 - SSIM_WINDOW);
-    let kernel = window();
+    let kernel = ssim_window();
     let positions = (3 * vw * vh) as f64;
     let per_channel: Vec<(f64, Vec<f64>)> = (0..3)
         .into_par_iter()
@@ -122,38 +122,6 @@ pub fn l1_dssim(
     })
 }
 
-/// The normalised 1D Gaussian whose outer product is the SSIM window (the renderer's).
-fn window() -> [f64; SSIM_WINDOW] {
-    let half = (SSIM_WINDOW / 2) as f64;
-    let mut k = [0.0; SSIM_WINDOW];
-    for (i, v) in k.iter_mut().enumerate() {
-        let d = i as f64 - half;
-        *v = (-d * d / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp();
-    }
-    let sum: f64 = k.iter().sum();
-    k.map(|v| v / sum)
-}
-
-/// The valid filter: `(w − 10)·(h − 10)` window sums of `f`, row-major.
-fn filter(k: &[f64; SSIM_WINDOW], w: usize, h: usize, f: &[f64]) -> Vec<f64> {
-    let (vw, vh) = (w + 1 - SSIM_WINDOW, h + 1 - SSIM_WINDOW);
-    let mut rows = vec![0.0; vw * h];
-    for y in 0..h {
-        for x in 0..vw {
-            rows[y * vw + x] = (0..SSIM_WINDOW).map(|i| k[i] * f[y * w + x + i]).sum();
-        }
-    }
-    let mut out = vec![0.0; vw * vh];
-    for y in 0..vh {
-        for x in 0..vw {
-            out[y * vw + x] = (0..SSIM_WINDOW)
-                .map(|i| k[i] * rows[(y + i) * vw + x])
-                .sum();
-        }
-    }
-    out
-}
-
 /// The valid filter's adjoint: each window value scattered back over its window's pixels.
 fn scatter(k: &[f64; SSIM_WINDOW], w: usize, h: usize, g: &[f64]) -> Vec<f64> {
     let (vw, vh) = (w + 1 - SSIM_WINDOW, h + 1 - SSIM_WINDOW);
@@ -186,12 +154,11 @@ fn ssim_channel(
     scale: f64,
 ) -> (f64, Vec<f64>) {
     let (c1, c2) = (SSIM_K1 * SSIM_K1, SSIM_K2 * SSIM_K2);
-    let square = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(u, v)| u * v).collect::<Vec<_>>();
-    let mu_x = filter(k, w, h, x);
-    let mu_y = filter(k, w, h, y);
-    let xx = filter(k, w, h, &square(x, x));
-    let yy = filter(k, w, h, &square(y, y));
-    let xy = filter(k, w, h, &square(x, y));
+    let mu_x = filter_valid(k, w, h, &|i| x[i]);
+    let mu_y = filter_valid(k, w, h, &|i| y[i]);
+    let xx = filter_valid(k, w, h, &|i| x[i] * x[i]);
+    let yy = filter_valid(k, w, h, &|i| y[i] * y[i]);
+    let xy = filter_valid(k, w, h, &|i| x[i] * y[i]);
     let n = mu_x.len();
     let (mut d_mu, mut d_xx, mut d_xy) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
     let mut sum = 0.0;

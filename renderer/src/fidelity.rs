@@ -73,7 +73,7 @@ pub fn ssim(
     }
     let c1 = (SSIM_K1 * 1.0).powi(2);
     let c2 = (SSIM_K2 * 1.0).powi(2);
-    let kernel = gaussian_window();
+    let kernel = ssim_window();
     let mut total = 0.0;
     for channel in 0..3 {
         let x: Vec<f64> = (0..w * h).map(|p| f64::from(a[3 * p + channel])).collect();
@@ -94,8 +94,9 @@ pub fn ssim(
     Ok(total / (3 * positions) as f64)
 }
 
-/// The normalised 1D Gaussian whose outer product is the SSIM window.
-fn gaussian_window() -> [f64; SSIM_WINDOW] {
+/// The normalised 1D Gaussian whose outer product is the SSIM window (the D-SSIM loss's
+/// gradient in `c4g-optim` filters with the same one).
+pub fn ssim_window() -> [f64; SSIM_WINDOW] {
     let half = (SSIM_WINDOW / 2) as f64;
     let mut k = [0.0; SSIM_WINDOW];
     for (i, v) in k.iter_mut().enumerate() {
@@ -108,7 +109,7 @@ fn gaussian_window() -> [f64; SSIM_WINDOW] {
 
 /// `f` (a plane given pixel by pixel) filtered by the separable window, valid positions only:
 /// `(w − 10) · (h − 10)` values, row-major.
-fn filter_valid(
+pub fn filter_valid(
     kernel: &[f64; SSIM_WINDOW],
     w: usize,
     h: usize,
@@ -223,7 +224,7 @@ mod tests {
 
     #[test]
     fn the_window_is_a_normalised_gaussian_of_sigma_one_and_a_half() {
-        let k = gaussian_window();
+        let k = ssim_window();
         assert!((k.iter().sum::<f64>() - 1.0).abs() < 1e-15);
         assert!((k[5] / k[6] - (1.0f64 / (2.0 * 2.25)).exp()).abs() < 1e-12);
         assert_eq!(k[0], k[10]);
