@@ -32,7 +32,7 @@ pub struct Workers {
 
 impl Workers {
     fn service(&self) -> Result<&Arc<Service>, Status> {
-        Ok(self.state.service().map_err(status)?)
+        self.state.service().map_err(status)
     }
 }
 

@@ -7,6 +7,8 @@
 //! Sets and images are compared exactly (`==`): every path below runs the same engine and
 //! rasterizer on the same inputs on this machine, so any difference is a behaviour, not rounding.
 
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
 use std::path::PathBuf;
 use std::sync::Arc;
 

@@ -155,7 +155,7 @@ fn parse_options(fields: &[(String, String)]) -> Result<IntakeOptions, ServiceEr
         value.trim().parse().map_err(|_| {
             ServiceError::invalid(format!(
                 "`{name}` must be a number, got {value_quoted}",
-                value_quoted = quoted(&value)
+                value_quoted = quoted(value)
             ))
         })
     }
@@ -257,7 +257,7 @@ fn timestamps(value: &str) -> Result<Vec<f64>, ServiceError> {
                 _ => Err(ServiceError::invalid(format!(
                     "timestamps must be comma-separated decimal numbers of seconds (0,0.1,0.25), \
                      got {item_quoted}",
-                    item_quoted = quoted(&item)
+                    item_quoted = quoted(item)
                 ))),
             }
         })

@@ -575,7 +575,7 @@ fn is_clip_id(id: &str) -> bool {
 fn not_found(id: &str) -> ServiceError {
     ServiceError::NotFound(format!(
         "no clip {id_quoted}: upload it with POST /v1/clips (GET /v1/clips lists the stored ones)",
-        id_quoted = quoted(&id)
+        id_quoted = quoted(id)
     ))
 }
 

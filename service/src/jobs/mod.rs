@@ -264,6 +264,6 @@ pub fn prune_videos(dir: &Path, age: Duration) -> usize {
 fn not_found(id: &str) -> ServiceError {
     ServiceError::NotFound(format!(
         "no job {id_quoted} (GET /v1/jobs lists them)",
-        id_quoted = quoted(&id)
+        id_quoted = quoted(id)
     ))
 }

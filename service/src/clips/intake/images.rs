@@ -149,14 +149,14 @@ fn is_contained(name: &str) -> bool {
 fn escaping(kind: &str, name: &str) -> ServiceError {
     ServiceError::UnreadableMedia(format!(
         "{kind} entry {name_quoted} names a path outside the archive: refused",
-        name_quoted = quoted(&name)
+        name_quoted = quoted(name)
     ))
 }
 
 fn link(kind: &str, name: &str) -> ServiceError {
     ServiceError::UnreadableMedia(format!(
         "{kind} entry {name_quoted} is a link: an archive of frames holds regular files only",
-        name_quoted = quoted(&name)
+        name_quoted = quoted(name)
     ))
 }
 

@@ -103,7 +103,7 @@ fn number(file: &str, line: usize, field: &str, text: &str) -> Result<f64, Servi
         Ok(v) if v.is_finite() => Ok(v),
         _ => Err(ServiceError::invalid(format!(
             "{file} line {line}: {field} must be a finite number, got {text_quoted}",
-            text_quoted = quoted(&text)
+            text_quoted = quoted(text)
         ))),
     }
 }
@@ -112,7 +112,7 @@ fn id(file: &str, line: usize, field: &str, text: &str) -> Result<u64, ServiceEr
     text.parse().map_err(|_| {
         ServiceError::invalid(format!(
             "{file} line {line}: {field} must be a whole number, got {text_quoted}",
-            text_quoted = quoted(&text)
+            text_quoted = quoted(text)
         ))
     })
 }

@@ -219,7 +219,7 @@ fn frame_order(
                         "camera_names[{frame}] is {name_quoted}, which {what} does not have \
                              (it has {} images)",
                         available.len(),
-                        name_quoted = quoted(&name)
+                        name_quoted = quoted(name)
                     ))
                 })
             })
