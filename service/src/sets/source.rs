@@ -1,8 +1,9 @@
 //! [`SetSource`]: the one answer to "the Gaussian sets of this clip at these times, under these
 //! options". Exact decodes (batched across requests), keyframed ones, quality presets and pruning
-//! all resolve here, on work slots; renders, streams, exports, tracks, features and refinement
-//! jobs ask it and never the engine directly for sets. It asks only the clips layer (records and
-//! encodings) below it.
+//! all resolve here, on work slots; renders, streams, exports, tracks and refinement jobs ask it
+//! for sets. (Decodes with lifted features still run the feature decoder from the views'
+//! `features` module: moving them behind this seam is the next step.) It asks only the clips
+//! layer (records and encodings) below it.
 
 use std::sync::Arc;
 
