@@ -153,7 +153,16 @@ impl PostgresJobs {
         let mut client = self.pool.get().await.map_err(db)?;
         let tx = client.transaction().await.map_err(db)?;
         let mut record = self.locked(&tx, id).await?;
-        let lease = change(&mut record)?;
+        let lease = match change(&mut record) {
+            Ok(lease) => lease,
+            Err(refused) => {
+                // Rolled back before answering: a dropped transaction rolls back only when the
+                // connection gets to it, and until then the row's lock makes other replicas'
+                // takers (`SKIP LOCKED`) pass over a queued job.
+                tx.rollback().await.map_err(db)?;
+                return Err(refused);
+            }
+        };
         self.write(&tx, &mut record, lease).await?;
         tx.commit().await.map_err(db)?;
         Ok(record)
