@@ -58,7 +58,7 @@ pub use gaussians::{GaussianFormat, GaussianFrame, Precision};
 pub use jobs::{Job, JobEvents, JobProgress, RefineRequest, Sampler, job_event_stream};
 pub use keyframes::Keyframes;
 pub use model::{InputSize, Model};
-pub use quality::{Approximation, Prune, Quality};
+pub use quality::{Approximation, Prune, Quality, Scene};
 pub use render::{
     CameraSpec, IntrinsicsSpec, RenderFormat, RenderRequest, Rendered, TrajectoryPreset,
 };

@@ -32,6 +32,34 @@ impl Quality {
     }
 }
 
+/// Which scene serves a request (`docs/api.md`, "Fitting"): `Auto` (the server's default) is the
+/// clip's fitted scene when it has one and nothing asks for an approximation, else the
+/// feed-forward one.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Scene {
+    /// The fitted scene when there is one, else the feed-forward one.
+    #[default]
+    #[serde(rename = "auto")]
+    Auto,
+    /// The model's answer.
+    #[serde(rename = "feed-forward")]
+    FeedForward,
+    /// The clip's fitted scene (refused when it has none).
+    #[serde(rename = "fitted")]
+    Fitted,
+}
+
+impl Scene {
+    /// The name requests and answers use.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Auto => "auto",
+            Self::FeedForward => "feed-forward",
+            Self::Fitted => "fitted",
+        }
+    }
+}
+
 /// Drop the Gaussians that change nothing visible: measured once per clip by the server, the
 /// same Gaussians at every time. `Prune::default()` takes the server's floors.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
@@ -73,6 +101,9 @@ pub struct Approximation {
     /// Pruning, overriding the preset's.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub prune: Option<Prune>,
+    /// Which scene (the server's default: auto).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scene: Option<Scene>,
 }
 
 impl Approximation {
@@ -120,10 +151,11 @@ mod tests {
                 drop_queries: Some(true),
                 opacity: None,
             }),
+            scene: Some(Scene::FeedForward),
         };
         assert_eq!(
             serde_json::to_value(approximation).unwrap(),
-            json!({"quality": "fast", "keyframes": {"count": 4}, "prune": {"contribution_px": 1.0, "drop_queries": true}})
+            json!({"quality": "fast", "keyframes": {"count": 4}, "prune": {"contribution_px": 1.0, "drop_queries": true}, "scene": "feed-forward"})
         );
         assert_eq!(approximation.proto_quality(), proto::Quality::Fast as i32);
     }

@@ -90,6 +90,10 @@ impl Client {
                 position_error: c.position_error,
                 keyframe_interval: c.keyframe_interval,
             }),
+            scene: options
+                .approximation
+                .scene
+                .map_or(String::new(), |s| s.name().to_owned()),
         };
         let mut grpc = self.grpc().await?;
         let frames = grpc

@@ -247,6 +247,7 @@ async fn refine(
                 step: step as u32,
                 steps: steps as u32,
                 stage: "denoising".into(),
+                ..Default::default()
             };
             match handle.block_on(client.progress(report)) {
                 Ok(answer) if answer.get_ref().cancelled => ControlFlow::Break(()),

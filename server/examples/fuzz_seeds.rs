@@ -371,6 +371,7 @@ fn main() {
                     step: 1,
                     steps: 2,
                     stage: "denoise".into(),
+                    ..Default::default()
                 }
                 .encode_to_vec(),
             ),

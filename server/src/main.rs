@@ -94,6 +94,13 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
         })
     };
     let app = c4g_server::body_deadline::layer(router(state.clone()), config.body_timeout());
+    // Small answers go out at once: without TCP_NODELAY a gRPC reply waits on the client's
+    // delayed acknowledgement (about 40 ms a call on loopback).
+    let listener = axum::serve::ListenerExt::tap_io(listener, |tcp| {
+        if let Err(e) = tcp.set_nodelay(true) {
+            tracing::debug!("cannot set TCP_NODELAY: {e}");
+        }
+    });
     let server = tokio::spawn(
         axum::serve(listener, app)
             .with_graceful_shutdown(shutdown_signal(state.clone()))
@@ -112,8 +119,8 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
     // with the reason: a server that can never be ready helps nobody, and an orchestrator sees
     // the failed start. Until then /health answers and /ready says 503 not_ready.
     loading.await??;
-    // Jobs whose worker went quiet go back to the queue (or fail) within a second of their
-    // lease; the queue's depth is counted anew (for a shared store, the cluster's: what a worker
+    // Jobs (refinements and fits) whose worker went quiet go back to their queue (or fail) within
+    // a second of their lease; each queue's depth is counted anew (for a shared store, the cluster's: what a worker
     // autoscaler reads); jobs past their retention are deleted.
     if let Ok(service) = state.service() {
         let (service, retention) = (service.clone(), config.job_retention());
@@ -127,10 +134,12 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
                 if let Some(age) = retention
                     && round % 120 == 0
                 {
-                    match service.jobs.prune(age).await {
-                        Ok(0) => {}
-                        Ok(n) => tracing::info!(jobs = n, "deleted jobs past their retention"),
-                        Err(e) => tracing::warn!("cannot delete old jobs: {e}"),
+                    for queue in [&service.jobs, &service.fits] {
+                        match queue.prune(age).await {
+                            Ok(0) => {}
+                            Ok(n) => tracing::info!(jobs = n, "deleted jobs past their retention"),
+                            Err(e) => tracing::warn!("cannot delete old jobs: {e}"),
+                        }
                     }
                     let videos = c4g_service::jobs::prune_videos(&service.job_videos, age);
                     if videos > 0 {
@@ -138,7 +147,11 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
                     }
                 }
                 // Said once when it starts failing and once when it recovers, not twice a second.
-                match service.jobs.reap().await {
+                let reaped = match service.jobs.reap().await {
+                    Ok(n) => service.fits.reap().await.map(|m| n + m),
+                    Err(e) => Err(e),
+                };
+                match reaped {
                     Err(e) if !failing => {
                         tracing::warn!("cannot look for lost jobs: {e}");
                         failing = true;
@@ -151,6 +164,9 @@ async fn run(config: Config) -> Result<(), Box<dyn std::error::Error>> {
                 }
                 if let Ok(queued) = service.jobs.queued().await {
                     metrics::gauge!("c4g_jobs_queued").set(queued as f64);
+                }
+                if let Ok(queued) = service.fits.queued().await {
+                    metrics::gauge!("c4g_fit_jobs_queued").set(queued as f64);
                 }
             }
         });

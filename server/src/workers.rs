@@ -1,4 +1,6 @@
-//! The gRPC service `c4g.v1.Jobs` that `c4g-refiner` workers pull refinement jobs from.
+//! The gRPC service `c4g.v1.Jobs` that `c4g-refiner` workers pull refinement jobs from, and
+//! `c4g-fitter` workers fit jobs (`TakeFit`, `FinishFit`; progress, failures and releases go to
+//! whichever queue holds the job).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -9,6 +11,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::AppState;
 use crate::error::{IntoStatus, status};
+use c4g_service::jobs::fit::{self, FitOutcome, FitWork};
 use c4g_service::jobs::refine::{WorkerJob, WorkerModel, build_job};
 use c4g_service::jobs::{JobState, Progress};
 use c4g_service::service::Service;
@@ -124,9 +127,9 @@ impl Jobs for Workers {
         request: Request<pb::ProgressRequest>,
     ) -> Result<Response<pb::ProgressResponse>, Status> {
         let r = request.into_inner();
-        let cancelled = self
-            .service()?
-            .jobs
+        let service = self.service()?;
+        let (_, queue, _) = service.find_job(&r.job_id).await.map_err(status)?;
+        let cancelled = queue
             .progress(
                 &r.job_id,
                 &r.worker,
@@ -134,6 +137,10 @@ impl Jobs for Workers {
                     step: r.step,
                     steps: r.steps,
                     stage: r.stage,
+                    loss: r.loss,
+                    holdout_psnr: r.holdout_psnr,
+                    gaussians: r.gaussians,
+                    elapsed_s: r.elapsed_s,
                 },
             )
             .await
@@ -190,14 +197,124 @@ impl Jobs for Workers {
         Ok(Response::new(pb::FinishResponse {}))
     }
 
+    async fn take_fit(
+        &self,
+        request: Request<pb::TakeFitRequest>,
+    ) -> Result<Response<pb::TakeFitResponse>, Status> {
+        let request = request.into_inner();
+        let service = self.service()?.clone();
+        if request.worker.is_empty() {
+            return Err(ServiceError::invalid("a worker names itself").into_status());
+        }
+        let wait = Duration::from_millis(u64::from(request.wait_ms)).min(MAX_WAIT);
+        loop {
+            if self.state.is_draining() {
+                return Ok(Response::new(pb::TakeFitResponse { job: None }));
+            }
+            let taken = tokio::select! {
+                taken = service.fits.take(&request.worker, wait) => taken.map_err(status)?,
+                () = self.state.drained() => None,
+            };
+            let Some(record) = taken else {
+                return Ok(Response::new(pb::TakeFitResponse { job: None }));
+            };
+            match fit::build_work(&service.views, &record).await {
+                Ok(work) => {
+                    tracing::info!(job = %record.id, worker = %request.worker, attempt = record.attempt, "fit taken");
+                    return Ok(Response::new(pb::TakeFitResponse {
+                        job: Some(fit_job(work)),
+                    }));
+                }
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        ServiceErrorKind::Overloaded | ServiceErrorKind::Busy
+                    ) =>
+                {
+                    service
+                        .fits
+                        .release(&record.id, &request.worker, &e.to_string())
+                        .await
+                        .map_err(status)?;
+                    return Ok(Response::new(pb::TakeFitResponse { job: None }));
+                }
+                Err(e) => {
+                    let retryable = e.kind() == ServiceErrorKind::Internal;
+                    service
+                        .fits
+                        .fail(
+                            &record.id,
+                            &request.worker,
+                            &e.to_string(),
+                            retryable,
+                            false,
+                        )
+                        .await
+                        .map_err(status)?;
+                }
+            }
+        }
+    }
+
+    async fn finish_fit(
+        &self,
+        request: Request<Streaming<pb::FinishFitRequest>>,
+    ) -> Result<Response<pb::FinishResponse>, Status> {
+        let service = self.service()?.clone();
+        let limit = self.state.config().limits().max_grpc_message_bytes;
+        let mut stream = request.into_inner();
+        let header = match stream.message().await? {
+            Some(pb::FinishFitRequest {
+                part: Some(pb::finish_fit_request::Part::Header(h)),
+            }) => h,
+            _ => return Err(ServiceError::invalid("a result starts with its header").into_status()),
+        };
+        let mut scene = Vec::new();
+        while let Some(message) = stream.message().await? {
+            match message.part {
+                Some(pb::finish_fit_request::Part::Scene(piece)) => {
+                    // Bounded like one message: a fitted scene within the Gaussian bound is far
+                    // smaller.
+                    if scene.len() + piece.len() > limit.saturating_mul(16) {
+                        return Err(ServiceError::TooLarge(
+                            "the fitted scene is larger than any fit makes".into(),
+                        )
+                        .into_status());
+                    }
+                    scene.extend_from_slice(&piece);
+                }
+                _ => {
+                    return Err(
+                        ServiceError::invalid("after the header a fit sends its scene")
+                            .into_status(),
+                    );
+                }
+            }
+        }
+        let outcome: FitOutcome = serde_json::from_str(&header.outcome_json)
+            .map_err(|e| ServiceError::invalid(format!("outcome_json: {e}")).into_status())?;
+        let record = fit::complete(
+            &service.views,
+            service.fits.as_ref(),
+            &header.job_id,
+            &header.worker,
+            &scene,
+            outcome,
+        )
+        .await
+        .map_err(status)?;
+        tracing::info!(job = %record.id, state = ?record.state, "fit finished");
+        Ok(Response::new(pb::FinishResponse {}))
+    }
+
     async fn fail(
         &self,
         request: Request<pb::FailRequest>,
     ) -> Result<Response<pb::FailResponse>, Status> {
         let r = request.into_inner();
-        let record = self
-            .service()?
-            .jobs
+        let service = self.service()?;
+        let (_, queue, _) = service.find_job(&r.job_id).await.map_err(status)?;
+        let record = queue
             .fail(&r.job_id, &r.worker, &r.error, r.retryable, r.cancelled)
             .await
             .map_err(status)?;
@@ -222,14 +339,50 @@ impl Jobs for Workers {
         };
         // Not the job's fault: its attempt is not counted. Only the worker that holds the job may
         // hand it back (the same `drop it` answer as the other calls).
-        let record = self
-            .service()?
-            .jobs
+        let service = self.service()?;
+        let (_, queue, _) = service.find_job(&r.job_id).await.map_err(status)?;
+        let record = queue
             .release(&r.job_id, &r.worker, why)
             .await
             .map_err(status)?;
         tracing::info!(job = %record.id, worker = %r.worker, state = ?record.state, reason = why, "job released: its worker is stopping");
         Ok(Response::new(pb::ReleaseResponse {}))
+    }
+}
+
+/// The work in the `FitJob` message a fit worker reads.
+fn fit_job(work: FitWork) -> pb::FitJob {
+    let s = &work.settings;
+    let settings = serde_json::json!({
+        "steps": s.steps,
+        "resolution": s.resolution,
+        "max_gaussians": s.max_gaussians,
+        "keyframe_every": s.keyframe_every,
+        "holdout_every": s.holdout_every,
+        "refine_cameras": s.refine_cameras,
+        "time_budget_s": s.time_budget_s,
+        "seed": s.seed,
+        "max_frames": s.max_frames,
+    });
+    pb::FitJob {
+        job_id: work.job_id,
+        attempt: work.attempt,
+        preset: work.preset,
+        settings_json: settings.to_string(),
+        frames: work
+            .frames
+            .into_iter()
+            .map(|f| pb::FitFrame {
+                time: f.time,
+                png: f.png,
+                world_to_camera: f.world_to_camera,
+                fx: f.intrinsics[0],
+                fy: f.intrinsics[1],
+                cx: f.intrinsics[2],
+                cy: f.intrinsics[3],
+            })
+            .collect(),
+        start: work.start,
     }
 }
 

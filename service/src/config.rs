@@ -96,6 +96,13 @@ pub struct Config {
     /// The most context frames an upload may ask for.
     #[arg(long, env = "C4G_MAX_CONTEXT_FRAMES", default_value_t = 32)]
     pub max_context_frames: usize,
+    /// Source frames kept with each clip (spread over its window, small) for fits to supervise
+    /// with; 0 keeps none, and fits then see the context frames alone.
+    #[arg(long, env = "C4G_KEPT_FRAMES", default_value_t = 48)]
+    pub kept_frames: usize,
+    /// Long side, pixels, of the kept source frames (the sharpest a fit can work at).
+    #[arg(long, env = "C4G_KEPT_FRAME_SIDE", default_value_t = 256)]
+    pub kept_frame_side: u32,
     /// Largest request body (an upload), in MiB.
     #[arg(long, env = "C4G_MAX_BODY_MIB", default_value_t = 512)]
     pub max_body_mib: u64,

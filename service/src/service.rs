@@ -1,5 +1,5 @@
 //! [`Service`], the core's root: the loaded model, the layers (the clip store, the set source,
-//! the views, the job queue), and what spans them: an upload (intake, an encode slot, the
+//! the views, the job queues), and what spans them: an upload (intake, an encode slot, the
 //! encode, the scale fit of given cameras) and a delete. REST handlers and gRPC methods call
 //! it and its layers.
 //!
@@ -20,11 +20,11 @@ use tokio::sync::Semaphore;
 use crate::ServiceError;
 use crate::clips::intake::cameras::{ClipCameras, Parsed};
 use crate::clips::intake::{self, IntakeOptions, IntakeTools, Media};
-use crate::clips::record::{ClipRecord, now};
+use crate::clips::record::{ClipRecord, KeptFrames, now};
 use crate::clips::shared::SharedClips;
 use crate::clips::store::{ClipStore, NewClip};
 use crate::config::{Config, Limits};
-use crate::jobs::{self, JobQueue};
+use crate::jobs::{self, JobKind, JobQueue, JobRecord};
 use crate::sets::SetSource;
 use crate::sets::batching::DecodeBatcher;
 use crate::views::rasterizer::Renderer;
@@ -49,6 +49,8 @@ pub struct Service {
     pub tools: IntakeTools,
     /// Refinement jobs: on this replica's disk, or in the database replicas share.
     pub jobs: Arc<dyn JobQueue>,
+    /// Fit jobs, in a queue of their own in the same store (`crate::jobs::fit`).
+    pub fits: Arc<dyn JobQueue>,
     /// Where refined videos are kept once made from a job's frames (derived: any replica can
     /// make them again).
     pub job_videos: std::path::PathBuf,
@@ -56,6 +58,8 @@ pub struct Service {
     pub views: Arc<Views>,
     model_key: String,
     encode_slots: Arc<Semaphore>,
+    /// How many source frames each upload keeps for fits, and their long side.
+    kept_frames: (usize, u32),
 }
 
 impl Service {
@@ -74,14 +78,18 @@ impl Service {
             // Another replica's encode takes what an encode here would: the intake's time limit.
             store = store.with_shared(shared, limits.intake_timeout.saturating_mul(2));
         }
-        let jobs = jobs::open(
-            config.job_database.as_ref().map(|url| url.expose()),
-            &config.store_dir.join(&model_key).join("jobs"),
-            &model_key,
-            std::time::Duration::from_secs_f64(config.job_lease_s.max(0.1)),
-            config.job_attempts,
-        )
-        .map_err(|e| e.to_string())?;
+        let queue = |dir: &str, key: &str| {
+            jobs::open(
+                config.job_database.as_ref().map(|url| url.expose()),
+                &config.store_dir.join(&model_key).join(dir),
+                key,
+                std::time::Duration::from_secs_f64(config.job_lease_s.max(0.1)),
+                config.job_attempts,
+            )
+            .map_err(|e| e.to_string())
+        };
+        let jobs = queue("jobs", &model_key)?;
+        let fits = queue("fit-jobs", &format!("{model_key}/fit"))?;
         let renderer = Renderer::new(
             config.renderer,
             config.footprint(engine.manifest().footprint()),
@@ -123,9 +131,11 @@ impl Service {
             tools,
             limits,
             jobs,
+            fits,
             job_videos: config.store_dir.join(&model_key).join("job-videos"),
             model_key,
             encode_slots: Arc::new(Semaphore::new(config.max_concurrent_encodes.max(1))),
+            kept_frames: (config.kept_frames, config.kept_frame_side),
             views,
         })
     }
@@ -158,7 +168,18 @@ impl Service {
             }
         })?;
         let started = Instant::now();
-        let intake = intake::read(media, &options, &self.limits, &self.tools).await?;
+        let intake = intake::read(media.clone(), &options, &self.limits, &self.tools).await?;
+        let (count, side) = self.kept_frames;
+        let (kept_times, kept_frames) = intake::kept::read_kept(
+            media,
+            &options,
+            &self.limits,
+            &self.tools,
+            &intake.source,
+            count,
+            side,
+        )
+        .await?;
         metrics::histogram!("c4g_intake_duration_seconds").record(started.elapsed().as_secs_f64());
         let sources: Vec<usize> = intake.frames.iter().map(|f| f.source_index).collect();
         if let Some(parsed) = &cameras {
@@ -221,9 +242,15 @@ impl Service {
                 feature_shape: encoding.shape(),
                 frame_step,
                 cameras,
+                kept_frames: kept_frames.first().map(|first| KeptFrames {
+                    times: kept_times,
+                    width: first.width(),
+                    height: first.height(),
+                }),
             },
             encoding,
             frames,
+            kept_frames,
         })
     }
 
@@ -234,6 +261,20 @@ impl Service {
         self.sets.forget(id);
         self.views.forget(id);
         Ok(())
+    }
+
+    /// Job `id` (a refinement or a fit) and the queue that holds it.
+    pub async fn find_job(
+        &self,
+        id: &str,
+    ) -> Result<(JobKind, &Arc<dyn JobQueue>, JobRecord), ServiceError> {
+        match self.jobs.get(id).await {
+            Ok(record) => Ok((JobKind::Refine, &self.jobs, record)),
+            Err(e) if e.kind() == crate::ServiceErrorKind::NotFound => {
+                Ok((JobKind::Fit, &self.fits, self.fits.get(id).await?))
+            }
+            Err(e) => Err(e),
+        }
     }
 
     /// The short hash of the model package that keys its clips and jobs on disk.

@@ -287,6 +287,7 @@ fn api_keys_and_grpc_limits_are_enforced_and_the_server_keeps_serving() {
             quality: 0,
             prune: None,
             features: false,
+            scene: String::new(),
         };
         let refused = grpc.decode(request()).await.unwrap_err();
         assert_eq!(refused.code(), tonic::Code::Unauthenticated, "{refused:?}");
@@ -314,6 +315,7 @@ fn api_keys_and_grpc_limits_are_enforced_and_the_server_keeps_serving() {
             quality: 0,
             prune: None,
             features: false,
+            scene: String::new(),
         });
         oversized
             .metadata_mut()
@@ -375,6 +377,7 @@ fn a_full_work_queue_is_refused_over_rest_and_grpc_with_its_kind_and_the_old_set
                 quality: 0,
                 prune: None,
                 features: false,
+                scene: String::new(),
             })
             .await
             .unwrap_err();

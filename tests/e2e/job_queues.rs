@@ -25,6 +25,7 @@ fn progress() -> Progress {
         step: 1,
         steps: 4,
         stage: "denoising".into(),
+        ..Default::default()
     }
 }
 

@@ -13,6 +13,7 @@ mod contract;
 mod exports;
 mod faults;
 mod features;
+mod fit;
 mod job_queues;
 mod keyframes;
 mod load;

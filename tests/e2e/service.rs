@@ -227,6 +227,7 @@ fn a_real_video_goes_through_upload_decode_render_and_stream_over_http_and_grpc(
                 quality: 0,
                 prune: None,
                 features: false,
+                scene: String::new(),
             })
             .await
             .unwrap()
@@ -260,6 +261,7 @@ fn a_real_video_goes_through_upload_decode_render_and_stream_over_http_and_grpc(
                 quality: 0,
                 prune: None,
                 compact: None,
+                scene: String::new(),
             })
             .await
             .unwrap()

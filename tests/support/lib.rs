@@ -607,6 +607,36 @@ impl Drop for RefinerWorker {
     }
 }
 
+/// A `c4g-fitter` worker pulling fit jobs from the server at `url` (the process is in `.0`);
+/// killed when dropped.
+pub struct FitterWorker(pub Child);
+
+impl FitterWorker {
+    /// Starts one named `name`, logging at `RUST_LOG` (default warn).
+    pub fn start(url: &str, name: &str) -> Self {
+        Self(
+            Command::new(binary("c4g-fitter"))
+                .current_dir(workspace())
+                .args(["--server", url, "--name", name])
+                .env(
+                    "RUST_LOG",
+                    std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
+                )
+                .stdout(Stdio::null())
+                .stderr(Stdio::inherit())
+                .spawn()
+                .unwrap(),
+        )
+    }
+}
+
+impl Drop for FitterWorker {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
 /// Asserts the status, the kind and a fragment of the message of an error answer.
 pub fn expect_error(
     response: reqwest::blocking::Response,

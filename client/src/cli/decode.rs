@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::bail;
 use c4g_client::{
-    Approximation, GaussianFormat, GaussianFrame, Keyframes, Precision, Prune, Quality,
+    Approximation, GaussianFormat, GaussianFrame, Keyframes, Precision, Prune, Quality, Scene,
 };
 use indicatif::HumanBytes;
 use serde_json::json;
@@ -67,6 +67,18 @@ pub(super) struct ApproximationArgs {
     /// With --keyframe-tolerance: at most N exact decodes (server default 64).
     #[arg(long, value_name = "N", requires = "keyframe_tolerance")]
     keyframe_max: Option<u32>,
+    /// Which scene: auto (the server's default: the clip's fitted scene when it has one),
+    /// feed-forward or fitted (`c4g fit` makes one).
+    #[arg(long, value_enum, value_name = "SCENE")]
+    scene: Option<SceneArg>,
+}
+
+/// The choices of `--scene`.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum SceneArg {
+    Auto,
+    FeedForward,
+    Fitted,
 }
 
 /// The presets of `--quality`.
@@ -91,6 +103,11 @@ impl ApproximationArgs {
                 contribution_px: Some(px),
                 opacity: None,
                 drop_queries: self.drop_queries.then_some(true),
+            }),
+            scene: self.scene.map(|s| match s {
+                SceneArg::Auto => Scene::Auto,
+                SceneArg::FeedForward => Scene::FeedForward,
+                SceneArg::Fitted => Scene::Fitted,
             }),
         }
     }

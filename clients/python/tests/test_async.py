@@ -105,6 +105,27 @@ def test_async_streams_equal_the_blocking_clients(server: str, client: Client, c
     same_sets(packed, client.decode(clip.id, [s.time for s in packed]))
 
 
+def test_async_grpc_calls_share_one_channel_that_aclose_closes(server: str, clip: c4g.Clip, monkeypatch):
+    grpc = pytest.importorskip("grpc")
+    opened = []
+    open_channel = grpc.aio.insecure_channel
+
+    def counted(*args, **kwargs):
+        opened.append(open_channel(*args, **kwargs))
+        return opened[-1]
+
+    monkeypatch.setattr(grpc.aio, "insecure_channel", counted)
+
+    async def body(c: AsyncClient):
+        assert opened == []
+        streamed = [s async for s in await c.grpc_stream(clip.id, start=0.0, end=0.1, step=0.1)]
+        decoded = await c.grpc_decode(clip.id, [0.2, 0.3])
+        return len(streamed), len(decoded), len(opened)
+
+    assert run(server, body) == (2, 2, 1)
+    assert opened[0].get_state() == grpc.ChannelConnectivity.SHUTDOWN
+
+
 def test_async_jobs_and_errors(server: str, clip: c4g.Clip):
     async def body(c: AsyncClient):
         job = await c.refine(

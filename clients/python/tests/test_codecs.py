@@ -4,6 +4,7 @@ the error table and the option types."""
 from __future__ import annotations
 
 import io
+import math
 import struct
 
 import httpx
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 
 import c4g_client as c4g
-from c4g_client import _c4gs, _c4gv, _errors, _http, _png
+from c4g_client import _c4gs, _c4gv, _errors, _http, _libm, _png
 from c4g_client._sse import SseDecoder, SseEvent
 
 
@@ -321,6 +322,53 @@ def test_c4gv_decodes_cells_as_the_spec_tables_say(deflate):
     np.testing.assert_array_equal(last.colors[1], np.float32([100 / 1023, 200 / 1023, 300 / 1023]))
 
 
+def test_c4gv_scales_are_the_c_librarys_exp_without_a_call_a_value(monkeypatch):
+    """Bit for bit what the Rust decoder's ``f64::exp`` (the C library's) gives, but vectorised:
+    the reader calls :func:`math.exp` only where NumPy's last bit could change the float32."""
+    rng = np.random.default_rng(7)
+    n = 2000
+    log_scales = rng.integers(-20000, 9000, size=(n, 3))
+    rows = [[g, -g, 7, *map(int, log_scales[g]), 4096, 0, 0, 0, 512, 100, 200, 300] for g in range(n)]
+    stream = c4gv_stream([rows], deflate=True)
+    calls = []
+    exp = math.exp
+    monkeypatch.setattr(math, "exp", lambda v: calls.append(v) or exp(v))
+    (s,) = c4g.decode_c4gv(stream)
+    monkeypatch.undo()
+    expected = np.float32([[math.exp(v / 1024) for v in row] for row in log_scales.tolist()])
+    assert s.scales.tobytes() == expected.tobytes()
+    assert len(calls) < n * 3 // 100, f"{len(calls)} calls to math.exp for {n * 3} scales"
+
+
+def test_the_c_librarys_exp_and_log_over_arrays_bit_for_bit():
+    # Every log-scale cell of the default step (1/1024) from a scale of 1e-30 to 1e30.
+    cells = np.arange(-70700, 70700) / 1024
+    assert _libm.exp_f32(cells).tobytes() == np.float32([math.exp(v) for v in cells.tolist()]).tobytes()
+    scales = np.exp(cells)
+    assert _libm.log_f32(scales).tobytes() == np.float32([math.log(v) for v in scales.tolist()]).tobytes()
+    # Values whose result lands next to a point halfway between two float32s, where NumPy's last
+    # bit could round the other way: the exact path takes them.
+    rng = np.random.default_rng(3)
+
+    def halfway(values: np.ndarray) -> list:
+        below = values.astype(np.float32)
+        return ((below.astype(np.float64) + np.nextafter(below, np.float32(np.inf))) / 2).tolist()
+
+    at_exp = np.array([math.log(v) for v in halfway(np.exp(rng.uniform(-69, 69, 5000)))])
+    assert _libm.exp_f32(at_exp).tobytes() == np.float32([math.exp(v) for v in at_exp.tolist()]).tobytes()
+    at_log = np.array([math.exp(v) for v in halfway(rng.uniform(-69, 69, 5000))])
+    assert _libm.log_f32(at_log).tobytes() == np.float32([math.log(v) for v in at_log.tolist()]).tobytes()
+    # The extremes.
+    with np.errstate(divide="ignore"):
+        extremes = [-np.inf, np.inf, np.nan, 1000.0, -1000.0, 0.0]
+        np.testing.assert_array_equal(
+            _libm.exp_f32(np.array(extremes)), np.float32([0, np.inf, np.nan, np.inf, 0, 1])
+        )
+        np.testing.assert_array_equal(
+            _libm.log_f32(np.array([0.0, np.inf, np.nan, 1.0])), np.float32([-np.inf, np.inf, np.nan, 0])
+        )
+
+
 def test_c4gv_holds_static_gaussians_in_every_frame():
     still = cells(3, -100, 700)
     frames = [[cells(k, -k), still, cells(-k, k), still] for k in range(4)]
@@ -366,6 +414,10 @@ def test_c4gv_refuses_what_the_spec_forbids():
     too_opaque = c4gv_stream([[cells(1, 0, opacity=2000)]])
     with pytest.raises(c4g.FormatError, match="opacity"):
         c4g.decode_c4gv(too_opaque)
+    # A log-scale cell whose exp overflows is an infinite scale, not Python's OverflowError.
+    too_large = c4gv_stream([[cells(1, 800 * 1024)]])
+    with pytest.raises(c4g.FormatError, match="a scale is not finite"):
+        c4g.decode_c4gv(too_large)
 
 
 def test_sse_events_survive_any_chunking():

@@ -6,8 +6,10 @@ from __future__ import annotations
 import ast
 import base64
 import json
+import sys
 
 import numpy as np
+import pytest
 
 import c4g_client as c4g
 from c4g_client import Client, _png
@@ -39,12 +41,15 @@ def test_the_quickstart_notebook_is_a_valid_notebook():
     assert "Client" in "".join("".join(c["source"]) for c in code)
 
 
-def test_the_quickstart_notebook_runs_against_the_server(server: str, monkeypatch):
-    """Each code cell in order, in one namespace, from the notebook's folder: what a kernel
-    would run (without Jupyter, which the tests do not need)."""
+def test_the_quickstart_notebook_runs_against_the_server_from_any_directory(
+    server: str, monkeypatch, tmp_path
+):
+    """Each code cell in order, in one namespace, from a directory that is not the repository's
+    (the notebook reads no files; the server's address is ``C4G_URL``): what a kernel would run
+    (without Jupyter, which the tests do not need)."""
     notebook = json.loads((PACKAGE / "examples" / "quickstart.ipynb").read_text())
     monkeypatch.setenv("C4G_URL", server)
-    monkeypatch.chdir(PACKAGE / "examples")
+    monkeypatch.chdir(tmp_path)
     namespace: dict = {}
     try:
         for cell in notebook["cells"]:
@@ -54,3 +59,15 @@ def test_the_quickstart_notebook_runs_against_the_server(server: str, monkeypatc
         if "client" in namespace:
             namespace["client"].close()
     assert len(namespace["sets"]) == 13 and namespace["worst"] <= 1e-3
+    assert namespace["ply"].startswith(b"ply\n") and len(namespace["splat"]) % 32 == 0
+    assert list(tmp_path.iterdir()) == []  # nothing written where it ran
+
+
+def test_the_quickstart_notebook_names_the_extra_to_torch_needs():
+    tomllib = pytest.importorskip("tomllib" if sys.version_info >= (3, 11) else "tomli")
+    project = tomllib.loads((PACKAGE / "pyproject.toml").read_text())["project"]
+    extras = project["optional-dependencies"]
+    (extra,) = [name for name, needs in extras.items() if any(n.startswith("torch") for n in needs)]
+    notebook = json.loads((PACKAGE / "examples" / "quickstart.ipynb").read_text())
+    text = "".join("".join(c["source"]) for c in notebook["cells"] if c["cell_type"] == "markdown")
+    assert f"[{extra}]" in text and f"`{extra}` extra" in text and "to_torch()" in text

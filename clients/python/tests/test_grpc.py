@@ -65,6 +65,35 @@ def test_grpc_errors_carry_the_servers_kind(client: Client, clip: c4g.Clip):
         Client("http://127.0.0.1:9").grpc_stream(clip.id)
 
 
+def test_a_clients_grpc_calls_share_one_channel_that_closing_the_client_closes(
+    server: str, clip: c4g.Clip, monkeypatch
+):
+    import grpc
+
+    opened = []
+    open_channel = grpc.insecure_channel
+
+    def counted(*args, **kwargs):
+        opened.append(open_channel(*args, **kwargs))
+        return opened[-1]
+
+    monkeypatch.setattr(grpc, "insecure_channel", counted)
+    with Client(server) as c:
+        c.decode(clip.id, 0.1)
+        assert opened == []  # opened by the first gRPC call, not before
+        assert len(list(c.grpc_stream(clip.id, start=0.0, end=0.1, step=0.1))) == 2
+        with c.grpc_stream(clip.id, step=0.1) as stopped_early:
+            next(stopped_early)
+        assert len(c.grpc_decode(clip.id, [0.2, 0.3])) == 2
+        assert len(opened) == 1
+    # Closed with the client: the channel refuses calls, and so does the client.
+    with pytest.raises(ValueError, match="closed channel"):
+        opened[0].unary_unary("/c4g.v1.C4G/Decode")(b"")
+    with pytest.raises(RuntimeError, match="closed"):
+        c.grpc_decode(clip.id, 0.2)
+    assert len(opened) == 1
+
+
 def test_the_committed_grpc_messages_are_what_the_proto_makes(tmp_path: Path):
     pytest.importorskip("grpc_tools")
     subprocess.run(

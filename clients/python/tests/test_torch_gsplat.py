@@ -29,6 +29,14 @@ def test_to_torch_keeps_names_shapes_and_values(client: Client, clip: c4g.Clip):
     assert stacked["means"].shape == (3, 512, 3) and stacked["times"].tolist() == [0.1, 0.2, 0.3]
 
 
+def test_without_pytorch_to_torch_names_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "torch", None)  # as if it were not installed
+    s = c4g.GaussianSet(0.0, *(np.zeros((1, w), np.float32) for w in (3, 4, 3)), np.zeros(1, np.float32),
+                        np.zeros((1, 3), np.float32))  # fmt: skip
+    with pytest.raises(ImportError, match=r"torch extra: pip install 'c4g-client\[torch\]'"):
+        s.to_torch()
+
+
 def test_without_gsplat_the_helper_says_what_to_install(client: Client, clip: c4g.Clip, monkeypatch):
     monkeypatch.setitem(sys.modules, "gsplat", None)  # as if it were not installed
     assert isinstance(c4g.GsplatUnavailable("x"), ImportError)

@@ -313,6 +313,9 @@ pub async fn get(
     if let Some(recovered) = service.views.recovered_cameras(&id) {
         clip["recovered_cameras"] = json!(recovered);
     }
+    if let Some(fitted) = service.sets.fitted.get(&id).await? {
+        clip["fitted"] = json!(fitted.summary);
+    }
     Ok(Json(clip))
 }
 

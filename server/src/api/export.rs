@@ -13,10 +13,12 @@ use serde::Deserialize;
 use serde_json::Value;
 
 use super::json::{self, ClipId, JsonBody};
+use super::scene;
 use crate::AppState;
 use crate::error::ErrorReply;
 use c4g_service::sets::keyframes::KeyframesSpec;
 use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
+use c4g_service::sets::scene::Scene;
 use c4g_service::sets::streaming::{Spacing, StreamRequest};
 use c4g_service::views::exports::ExportFormat;
 
@@ -40,6 +42,9 @@ struct Request {
     quality: Option<Preset>,
     keyframes: Option<KeyframesSpec>,
     prune: Option<PruneSpec>,
+    /// Which scene: auto (the default), feed-forward or fitted.
+    #[serde(default)]
+    scene: Scene,
 }
 
 pub async fn export(
@@ -55,15 +60,18 @@ pub async fn export(
         Format::SpzZip => ExportFormat::SpzZip,
         Format::Splatv => ExportFormat::Splatv,
     };
+    let mut quality = QualitySpec {
+        preset: request.quality,
+        keyframes: request.keyframes,
+        prune: request.prune,
+        scene: request.scene,
+    };
+    let served = service.sets.resolve_scene(&id, &mut quality, false).await?;
     let stream = StreamRequest {
         start: request.start,
         end: request.end,
         spacing: Spacing::stated(request.step, request.fps)?,
-        quality: QualitySpec {
-            preset: request.quality,
-            keyframes: request.keyframes,
-            prune: request.prune,
-        },
+        quality,
     };
     let export = service.views.export(&id, &stream, format).await?;
     let name: String = id.chars().take(12).collect();
@@ -85,5 +93,5 @@ pub async fn export(
     {
         headers.insert("x-c4g-fit-position-error", value);
     }
-    Ok(response)
+    Ok(scene::label(response, served))
 }

@@ -11,12 +11,14 @@ use serde::Deserialize;
 use serde_json::Value;
 
 use super::json::{self, ClipId, JsonBody};
+use super::scene;
 use crate::AppState;
 use crate::error::ErrorReply;
 use crate::wire::{self, Precision};
 use c4g_service::ServiceError;
 use c4g_service::sets::keyframes::KeyframesSpec;
 use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
+use c4g_service::sets::scene::Scene;
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -35,6 +37,9 @@ pub struct GaussiansRequest {
     /// Each Gaussian's lifted feature vector too (a package with a feature decoder only).
     #[serde(default)]
     features: bool,
+    /// Which scene: auto (the default), feed-forward or fitted.
+    #[serde(default)]
+    scene: Scene,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
@@ -98,17 +103,22 @@ pub async fn decode(
         )
         .into());
     }
-    let quality = QualitySpec {
+    let mut quality = QualitySpec {
         preset: request.quality,
         keyframes: request.keyframes,
         prune: request.prune,
+        scene: request.scene,
     };
+    let served = service
+        .sets
+        .resolve_scene(&id, &mut quality, request.features)
+        .await?;
     let frames = if request.features {
         service.views.decode_features(&id, times, quality).await?
     } else {
         service.sets.decode(&id, times, quality).await?
     };
-    Ok(match format {
+    let response = match format {
         GaussianFormat::Json => Json(wire::json(&frames)).into_response(),
         GaussianFormat::Binary => (
             [(header::CONTENT_TYPE, "application/x-c4g-gaussians")],
@@ -125,5 +135,6 @@ pub async fn decode(
             splat::encode(&frames[0].1),
         )
             .into_response(),
-    })
+    };
+    Ok(scene::label(response, served))
 }

@@ -1,6 +1,7 @@
-//! Refinement over REST: `POST /v1/clips/{id}/refine` (202 with a job), `GET /v1/jobs`,
-//! `GET /v1/jobs/{id}`, progress as server-sent events (`/events`), the result (`/result`: MP4,
-//! or one frame as PNG with `?frame=k`), and cancellation.
+//! Jobs over REST: `POST /v1/clips/{id}/refine` and `POST /v1/clips/{id}/fit` (202 with a job),
+//! `GET /v1/jobs`, `GET /v1/jobs/{id}`, progress as server-sent events (`/events`), a
+//! refinement's result (`/result`: MP4, or one frame as PNG with `?frame=k`; a fit's result is the
+//! clip's fitted scene), and cancellation. Every job shows its `kind`: `refine` or `fit`.
 
 use std::convert::Infallible;
 
@@ -16,8 +17,9 @@ use super::json::{self, ClipId, JobId, JsonBody};
 use crate::AppState;
 use crate::error::ErrorReply;
 use c4g_service::ServiceError;
-use c4g_service::jobs::JobState;
+use c4g_service::jobs::fit::{self, FitRequest};
 use c4g_service::jobs::refine::RefineRequest;
+use c4g_service::jobs::{JobKind, JobRecord, JobState};
 use c4g_service::quoted;
 use c4g_service::views::image_formats::encode_mp4;
 
@@ -36,13 +38,39 @@ pub async fn submit(
     let stored = serde_json::to_value(&request)
         .map_err(|e| ServiceError::Internal(format!("cannot store the request: {e}")))?;
     let record = service.jobs.create(&clip_id, stored).await?;
+    Ok(accepted(JobKind::Refine, &record))
+}
+
+/// `POST /v1/clips/{id}/fit`: a fit job for the clip (`c4g_service::jobs::fit`).
+pub async fn submit_fit(
+    State(state): State<AppState>,
+    ClipId(clip_id): ClipId,
+    JsonBody(body): JsonBody<Value>,
+) -> Result<Response, ErrorReply> {
+    let service = state.service()?;
+    json::check_body(&body, service.limits.max_times)?;
+    let request: FitRequest = json::typed(body)?;
+    let clip = service.store.get_or_fetch(&clip_id).await?;
+    let record = fit::submit(service.fits.as_ref(), &clip, &request).await?;
+    Ok(accepted(JobKind::Fit, &record))
+}
+
+/// 202 with the job and where to follow it.
+fn accepted(kind: JobKind, record: &JobRecord) -> Response {
     let location = format!("/v1/jobs/{}", record.id);
-    Ok((
+    (
         StatusCode::ACCEPTED,
         [(header::LOCATION, location)],
-        Json(json!(record)),
+        Json(job_json(kind, record)),
     )
-        .into_response())
+        .into_response()
+}
+
+/// A job as the API shows it: its record and its kind.
+fn job_json(kind: JobKind, record: &JobRecord) -> Value {
+    let mut value = json!(record);
+    value["kind"] = json!(kind.name());
+    value
 }
 
 /// What `openapi.json` states of a refinement request that neither [`json::check_body`] nor
@@ -63,21 +91,41 @@ fn check(request: &RefineRequest, max_context_frames: usize) -> Result<(), Servi
 }
 
 pub async fn list(State(state): State<AppState>) -> Result<Json<Value>, ErrorReply> {
-    Ok(Json(json!({ "jobs": state.service()?.jobs.list().await? })))
+    let service = state.service()?;
+    let mut jobs: Vec<(JobKind, JobRecord)> = service
+        .jobs
+        .list()
+        .await?
+        .into_iter()
+        .map(|r| (JobKind::Refine, r))
+        .collect();
+    jobs.extend(
+        service
+            .fits
+            .list()
+            .await?
+            .into_iter()
+            .map(|r| (JobKind::Fit, r)),
+    );
+    jobs.sort_by(|(_, a), (_, b)| (a.created_at, &a.id).cmp(&(b.created_at, &b.id)));
+    let jobs: Vec<Value> = jobs.iter().map(|(k, r)| job_json(*k, r)).collect();
+    Ok(Json(json!({ "jobs": jobs })))
 }
 
 pub async fn get(
     State(state): State<AppState>,
     JobId(id): JobId,
 ) -> Result<Json<Value>, ErrorReply> {
-    Ok(Json(json!(state.service()?.jobs.get(&id).await?)))
+    let (kind, _, record) = state.service()?.find_job(&id).await?;
+    Ok(Json(job_json(kind, &record)))
 }
 
 pub async fn cancel(
     State(state): State<AppState>,
     JobId(id): JobId,
 ) -> Result<Json<Value>, ErrorReply> {
-    Ok(Json(json!(state.service()?.jobs.cancel(&id).await?)))
+    let (kind, queue, _) = state.service()?.find_job(&id).await?;
+    Ok(Json(job_json(kind, &queue.cancel(&id).await?)))
 }
 
 /// Every change of the job as an SSE `job` event (the whole record), ending after a terminal
@@ -86,7 +134,8 @@ pub async fn events(
     State(state): State<AppState>,
     JobId(id): JobId,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ErrorReply> {
-    let mut updates = state.service()?.jobs.subscribe(&id).await?;
+    let (kind, queue, _) = state.service()?.find_job(&id).await?;
+    let mut updates = queue.subscribe(&id).await?;
     let drained = state.drained();
     // A draining server ends its event streams (the job goes on; a client follows it again, on
     // another replica): they could otherwise hold the drain until its deadline.
@@ -96,7 +145,7 @@ pub async fn events(
             let record = updates.borrow_and_update().clone();
             let event = Event::default()
                 .event("job")
-                .json_data(&record)
+                .json_data(job_json(kind, &record))
                 .unwrap_or_default();
             if tx.send(Ok(event)).await.is_err() || record.state.is_terminal() {
                 return;
@@ -148,7 +197,15 @@ pub async fn result(
 ) -> Result<Response, ErrorReply> {
     let frame = result_frame(query.as_deref())?;
     let service = state.service()?.clone();
-    let record = service.jobs.get(&id).await?;
+    let (kind, _, record) = service.find_job(&id).await?;
+    if kind == JobKind::Fit {
+        return Err(ServiceError::NotFound(format!(
+            "job {id} is a fit: its result is the clip's fitted scene (GET /v1/clips/{}; \
+             renders and decodes serve it)",
+            record.clip_id
+        ))
+        .into());
+    }
     if record.state != JobState::Done {
         return Err(ServiceError::invalid(format!(
             "job {id} is {}: its result exists once it is done (GET /v1/jobs/{id})",

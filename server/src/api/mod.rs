@@ -10,6 +10,7 @@ mod jobs;
 mod json;
 pub(crate) mod models;
 mod render;
+mod scene;
 mod segment;
 mod stream;
 mod tracks;
@@ -43,6 +44,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/clips/{id}/segment", post(segment::segment))
         .route("/v1/clips/{id}/cameras/recover", post(cameras::recover))
         .route("/v1/clips/{id}/refine", post(jobs::submit))
+        .route("/v1/clips/{id}/fit", post(jobs::submit_fit))
         .route("/v1/jobs", get(jobs::list))
         // Cancelling is POST .../cancel; a job's record stays readable (there is no DELETE).
         .route("/v1/jobs/{id}", get(jobs::get))

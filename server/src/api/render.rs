@@ -10,11 +10,13 @@ use serde::Deserialize;
 use serde_json::Value;
 
 use super::json::{self, ClipId, JsonBody};
+use super::scene;
 use crate::AppState;
 use crate::error::ErrorReply;
 use c4g_service::ServiceError;
 use c4g_service::sets::keyframes::KeyframesSpec;
 use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
+use c4g_service::sets::scene::Scene;
 use c4g_service::views::camera::CameraSpec;
 use c4g_service::views::features::FeatureRender;
 use c4g_service::views::image_formats::{ImageFormat, encode_image, encode_mp4, to_rgb8};
@@ -49,6 +51,9 @@ pub struct RenderRequest {
     keyframes: Option<KeyframesSpec>,
     /// Drop the Gaussians that change nothing visible (default: the preset's).
     prune: Option<PruneSpec>,
+    /// Which scene: auto (the default), feed-forward or fitted.
+    #[serde(default)]
+    scene: Scene,
 }
 
 pub async fn render(
@@ -59,10 +64,11 @@ pub async fn render(
     let service = state.service()?.clone();
     json::check_body(&body, service.limits.max_times)?;
     let request: RenderRequest = json::typed(body)?;
-    let quality = QualitySpec {
+    let mut quality = QualitySpec {
         preset: request.quality,
         keyframes: request.keyframes,
         prune: request.prune,
+        scene: request.scene,
     };
     // An input camera swept over the frames is a path of its own (the same path at new times).
     let is_path =
@@ -88,7 +94,12 @@ pub async fn render(
             background: request.background,
         };
         let t = view.t;
-        if let Some(render) = FeatureRender::of_format(format) {
+        let features = FeatureRender::of_format(format);
+        let served = service
+            .sets
+            .resolve_scene(&id, &mut quality, features.is_some())
+            .await?;
+        if let Some(render) = features {
             let features = service
                 .views
                 .render_features(&id, view, quality, render)
@@ -104,17 +115,12 @@ pub async fn render(
                 HeaderName::from_static("x-c4g-channels"),
                 HeaderValue::from(features.channels),
             );
-            return Ok(response);
+            return Ok(scene::label(response, served));
         }
         let image = service.views.render_view(&id, view, quality).await?;
         let bytes = encode_image(&image, format)?;
-        return Ok(with_headers(
-            format,
-            bytes,
-            image.width,
-            image.height,
-            Some(t),
-        ));
+        let response = with_headers(format, bytes, image.width, image.height, Some(t));
+        return Ok(scene::label(response, served));
     }
     let format = request.format.unwrap_or(ImageFormat::Mp4);
     if format != ImageFormat::Mp4 {
@@ -154,6 +160,7 @@ pub async fn render(
         height: request.height,
         background: request.background,
     };
+    let served = service.sets.resolve_scene(&id, &mut quality, false).await?;
     let images = service
         .views
         .render_path_all(&id, &path, &quality, |_, image| {
@@ -171,7 +178,10 @@ pub async fn render(
         fps,
     )
     .await?;
-    Ok(with_headers(format, video, w, h, None))
+    Ok(scene::label(
+        with_headers(format, video, w, h, None),
+        served,
+    ))
 }
 
 fn with_headers(

@@ -19,10 +19,12 @@ use serde::Deserialize;
 use serde_json::Value;
 
 use super::json::{self, ClipId, JsonBody};
+use super::scene;
 use crate::AppState;
 use crate::error::ErrorReply;
 use c4g_service::sets::keyframes::KeyframesSpec;
 use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
+use c4g_service::sets::scene::Scene;
 use c4g_service::sets::streaming::{self, Spacing, StreamRequest, check_compact};
 
 /// The stream's content type.
@@ -39,6 +41,9 @@ struct Request {
     quality: Option<Preset>,
     keyframes: Option<KeyframesSpec>,
     prune: Option<PruneSpec>,
+    /// Which scene: auto (the default), feed-forward or fitted.
+    #[serde(default)]
+    scene: Scene,
     /// The largest error of a position coordinate, scene units (default 1e-3).
     position_error: Option<f64>,
     /// A full set every this many sets, for seeking (default 16).
@@ -63,15 +68,18 @@ pub async fn stream(
         ..defaults
     };
     check_compact(&options)?;
+    let mut quality = QualitySpec {
+        preset: request.quality,
+        keyframes: request.keyframes,
+        prune: request.prune,
+        scene: request.scene,
+    };
+    let served = service.sets.resolve_scene(&id, &mut quality, false).await?;
     let stream = StreamRequest {
         start: request.start,
         end: request.end,
         spacing,
-        quality: QualitySpec {
-            preset: request.quality,
-            keyframes: request.keyframes,
-            prune: request.prune,
-        },
+        quality,
     };
     let sets = streaming::stream(&service.sets, &id, &stream).await?;
     let count = sets.times.len();
@@ -91,7 +99,7 @@ pub async fn stream(
                 std::io::Error::other(e.to_string())
             })
         });
-    Ok((
+    let response = (
         [
             (header::CONTENT_TYPE, CONTENT_TYPE.to_owned()),
             (
@@ -101,5 +109,6 @@ pub async fn stream(
         ],
         Body::from_stream(body),
     )
-        .into_response())
+        .into_response();
+    Ok(scene::label(response, served))
 }

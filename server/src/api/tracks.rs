@@ -3,15 +3,18 @@
 
 use axum::Json;
 use axum::extract::State;
+use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
 use serde_json::Value;
 
 use super::json::{self, ClipId, JsonBody};
+use super::scene;
 use crate::AppState;
 use crate::error::ErrorReply;
 use c4g_service::sets::keyframes::KeyframesSpec;
 use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
-use c4g_service::views::tracking::{TrackQuery, TrackRequest, Tracker, Tracks};
+use c4g_service::sets::scene::Scene;
+use c4g_service::views::tracking::{TrackQuery, TrackRequest, Tracker};
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -24,6 +27,9 @@ pub struct TracksRequest {
     quality: Option<Preset>,
     keyframes: Option<KeyframesSpec>,
     prune: Option<PruneSpec>,
+    /// Which scene: auto (the default), feed-forward or fitted.
+    #[serde(default)]
+    scene: Scene,
     /// Which tracker follows the points (default: the Gaussians').
     #[serde(default)]
     tracker: Tracker,
@@ -33,21 +39,25 @@ pub async fn tracks(
     State(state): State<AppState>,
     ClipId(id): ClipId,
     JsonBody(body): JsonBody<Value>,
-) -> Result<Json<Tracks>, ErrorReply> {
+) -> Result<Response, ErrorReply> {
     let service = state.service()?.clone();
     json::check_body(&body, service.limits.max_times)?;
     let request: TracksRequest = json::typed(body)?;
+    let mut quality = QualitySpec {
+        preset: request.quality,
+        keyframes: request.keyframes,
+        prune: request.prune,
+        scene: request.scene,
+    };
+    let served = service.sets.resolve_scene(&id, &mut quality, false).await?;
     let request = TrackRequest {
         tracker: request.tracker,
         queries: request.queries,
         times: request.times,
         width: request.width,
         height: request.height,
-        quality: QualitySpec {
-            preset: request.quality,
-            keyframes: request.keyframes,
-            prune: request.prune,
-        },
+        quality,
     };
-    Ok(Json(service.views.tracks(&id, request).await?))
+    let tracks = Json(service.views.tracks(&id, request).await?);
+    Ok(scene::label(tracks.into_response(), served))
 }

@@ -81,13 +81,17 @@ pub(super) async fn get_clip(
     grpc: &Grpc,
     request: Request<pb::ClipRef>,
 ) -> Result<Response<pb::Clip>, Status> {
-    let record = grpc
-        .service()?
+    let service = grpc.service()?;
+    let record = service
         .store
         .get_or_fetch(&request.into_inner().clip_id)
         .await
         .map_err(status)?;
-    Ok(Response::new(clip_proto(&record, false)))
+    let mut clip = clip_proto(&record, false);
+    if let Some(fitted) = service.sets.fitted.get(&record.id).await.map_err(status)? {
+        clip.fitted_json = serde_json::to_string(&fitted.summary).unwrap_or_default();
+    }
+    Ok(Response::new(clip))
 }
 
 pub(super) async fn list_clips(

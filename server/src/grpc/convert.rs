@@ -8,6 +8,7 @@ use c4g_service::clips::intake::cameras::{CameraInput, ClipCameras};
 use c4g_service::clips::record::ClipRecord;
 use c4g_service::sets::keyframes::KeyframesSpec;
 use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
+use c4g_service::sets::scene::Scene;
 use c4g_service::views::camera::{CameraSpec, InputSpec, IntrinsicsSpec};
 use c4g_service::views::image_formats::ImageFormat;
 use c4g_service::views::tracking::TrackQuery;
@@ -28,6 +29,7 @@ pub(super) fn clip_proto(record: &ClipRecord, created: bool) -> pb::Clip {
         created,
         source_warnings: record.source.warnings.clone(),
         cameras: record.cameras.as_ref().map(clip_cameras),
+        fitted_json: String::new(),
     }
 }
 
@@ -142,6 +144,7 @@ pub(super) fn quality_spec(
     quality: i32,
     keyframes: Option<&pb::Keyframes>,
     prune: Option<&pb::Prune>,
+    scene: &str,
 ) -> Result<QualitySpec, ServiceError> {
     let preset = match pb::Quality::try_from(quality) {
         Ok(pb::Quality::Unspecified) => None,
@@ -162,6 +165,7 @@ pub(super) fn quality_spec(
             opacity: p.opacity,
             drop_queries: p.drop_queries,
         }),
+        scene: Scene::parse(scene).map_err(ServiceError::invalid)?,
     })
 }
 

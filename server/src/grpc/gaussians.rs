@@ -15,13 +15,19 @@ pub(super) async fn decode(
 ) -> Result<Response<pb::DecodeResponse>, Status> {
     let request = request.into_inner();
     let precision: Precision = wire::precision_from_proto(request.precision());
-    let quality = quality_spec(
+    let mut quality = quality_spec(
         request.quality,
         request.keyframes.as_ref(),
         request.prune.as_ref(),
+        &request.scene,
     )
     .map_err(status)?;
     let service = grpc.service()?;
+    let served = service
+        .sets
+        .resolve_scene(&request.clip_id, &mut quality, request.features)
+        .await
+        .map_err(status)?;
     let frames = if request.features {
         service
             .views
@@ -42,7 +48,9 @@ pub(super) async fn decode(
                 time: *t,
                 gaussians: Some(wire::proto(set, precision)),
                 c4gv: Vec::new(),
+                scene: served.name().to_owned(),
             })
             .collect(),
+        scene: served.name().to_owned(),
     }))
 }

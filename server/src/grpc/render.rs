@@ -28,8 +28,23 @@ pub(super) async fn render(
         height: nonzero(request.height),
         background: background(&request.background).map_err(status)?,
     };
-    let quality = quality_spec(request.quality, None, request.prune.as_ref()).map_err(status)?;
-    if let Some(render) = FeatureRender::of_format(format) {
+    let mut quality = quality_spec(
+        request.quality,
+        None,
+        request.prune.as_ref(),
+        &request.scene,
+    )
+    .map_err(status)?;
+    let features = FeatureRender::of_format(format);
+    let served = grpc
+        .service()?
+        .sets
+        .resolve_scene(&request.clip_id, &mut quality, features.is_some())
+        .await
+        .map_err(status)?
+        .name()
+        .to_owned();
+    if let Some(render) = features {
         let features = grpc
             .service()?
             .views
@@ -46,6 +61,7 @@ pub(super) async fn render(
                 FeatureRender::Raw => features.channels as u32,
                 FeatureRender::Pca => 0,
             },
+            scene: served,
         }));
     }
     let image = grpc
@@ -61,6 +77,7 @@ pub(super) async fn render(
         format: request.format,
         data: encode_image(&image, format).map_err(status)?,
         channels: 0,
+        scene: served,
     }))
 }
 
@@ -109,12 +126,19 @@ pub(super) async fn render_trajectory(
         height: nonzero(request.height),
         background: background(&request.background).map_err(status)?,
     };
-    let quality = quality_spec(
+    let mut quality = quality_spec(
         request.quality,
         request.keyframes.as_ref(),
         request.prune.as_ref(),
+        &request.scene,
     )
     .map_err(status)?;
+    let served = service
+        .sets
+        .resolve_scene(&request.clip_id, &mut quality, false)
+        .await
+        .map_err(status)?
+        .name();
     let image_format = request.format;
     let frames = service
         .views
@@ -126,6 +150,7 @@ pub(super) async fn render_trajectory(
                 format: image_format,
                 data: encode_image(&image, format)?,
                 channels: 0,
+                scene: served.to_owned(),
             })
         })
         .await

@@ -24,16 +24,24 @@ pub(super) async fn stream_gaussians(
         Some(pb::stream_gaussians_request::Spacing::Fps(fps)) => Spacing::Fps(fps),
         None => Spacing::Source,
     };
+    let mut quality = quality_spec(
+        request.quality,
+        request.keyframes.as_ref(),
+        request.prune.as_ref(),
+        &request.scene,
+    )
+    .map_err(status)?;
+    let served = service
+        .sets
+        .resolve_scene(&request.clip_id, &mut quality, false)
+        .await
+        .map_err(status)?
+        .name();
     let stream = StreamRequest {
         start: request.start,
         end: request.end,
         spacing,
-        quality: quality_spec(
-            request.quality,
-            request.keyframes.as_ref(),
-            request.prune.as_ref(),
-        )
-        .map_err(status)?,
+        quality,
     };
     let precision: Precision = wire::precision_from_proto(request.precision());
     let compact = match request.compact {
@@ -61,6 +69,7 @@ pub(super) async fn stream_gaussians(
                 time,
                 gaussians: None,
                 c4gv: bytes,
+                scene: served.to_owned(),
             }),
             Err(e) => Err(e.into_status()),
         })),
@@ -70,6 +79,7 @@ pub(super) async fn stream_gaussians(
                     time,
                     gaussians: Some(wire::proto(&set, precision)),
                     c4gv: Vec::new(),
+                    scene: served.to_owned(),
                 }),
                 Err(e) => Err(e.into_status()),
             }),

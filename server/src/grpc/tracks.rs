@@ -36,6 +36,7 @@ pub(super) async fn tracks(
             request.quality,
             request.keyframes.as_ref(),
             request.prune.as_ref(),
+            "",
         )
         .map_err(status)?,
     };

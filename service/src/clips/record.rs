@@ -35,6 +35,33 @@ pub struct ClipRecord {
     /// Absent in clips uploaded without them (and in clips stored before they were recorded).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cameras: Option<ClipCameras>,
+    /// Source frames kept, small, for fits to supervise with (`source/NNN.png` beside the
+    /// record). Absent in clips stored before they were kept, or with `C4G_KEPT_FRAMES=0`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kept_frames: Option<KeptFrames>,
+}
+
+/// The source frames kept with a clip: up to `C4G_KEPT_FRAMES` of the window's frames spread
+/// evenly (every frame of a shorter clip), at most `C4G_KEPT_FRAME_SIDE` pixels on their long
+/// side, as PNG.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct KeptFrames {
+    /// Their times, seconds, increasing (the context frames' clock).
+    pub times: Vec<f64>,
+    /// Their size, pixels.
+    pub width: u32,
+    /// Their size, pixels.
+    pub height: u32,
+}
+
+impl KeptFrames {
+    /// Where they live in a clip's directory.
+    pub const DIR: &str = "source";
+
+    /// Kept frame `index`'s path inside a clip's directory (also its shared object's name).
+    pub fn name(index: usize) -> String {
+        format!("{}/{index:03}.png", Self::DIR)
+    }
 }
 
 impl ClipRecord {

@@ -30,7 +30,7 @@ use object_store::path::Path as ObjectPath;
 use object_store::{ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload};
 
 use crate::ServiceError;
-use crate::clips::record::ClipRecord;
+use crate::clips::record::{ClipRecord, KeptFrames};
 
 /// A claim this old is its replica's, which died: another may encode the clip.
 pub const STALE_CLAIM: Duration = Duration::from_secs(600);
@@ -99,6 +99,7 @@ impl SharedClips {
     pub async fn publish(&self, record: &ClipRecord, dir: &Path) -> Result<(), ServiceError> {
         let mut names = vec!["features.f32".to_owned()];
         names.extend((0..record.context_times.len()).map(frame_name));
+        names.extend(kept_names(record));
         // The record last: its presence says the clip is whole.
         names.push("clip.json".to_owned());
         for name in names {
@@ -131,8 +132,14 @@ impl SharedClips {
         tokio::fs::create_dir_all(into.join("frames"))
             .await
             .map_err(|e| ServiceError::storage(format!("cannot fetch clip {id}"), &e))?;
+        if record.kept_frames.is_some() {
+            tokio::fs::create_dir_all(into.join(KeptFrames::DIR))
+                .await
+                .map_err(|e| ServiceError::storage(format!("cannot fetch clip {id}"), &e))?;
+        }
         let mut names = vec!["features.f32".to_owned()];
         names.extend((0..record.context_times.len()).map(frame_name));
+        names.extend(kept_names(&record));
         for name in names {
             let bytes = self.get(id, &name).await?.ok_or_else(|| {
                 ServiceError::Internal(format!("the shared clip {id} has a record but no {name}"))
@@ -255,6 +262,37 @@ impl SharedClips {
         }
     }
 
+    /// A file `name` kept beside clip `id`'s objects (derived data such as its fitted scene,
+    /// deleted with the clip).
+    pub async fn put_file(&self, id: &str, name: &str, bytes: Vec<u8>) -> Result<(), ServiceError> {
+        self.store
+            .put(&self.path(id, name), PutPayload::from(bytes))
+            .await
+            .map(|_| ())
+            .map_err(|e| shared_error(id, "publishing", &e))
+    }
+
+    /// The file `name` kept beside clip `id`'s objects, if there is one.
+    pub async fn get_file(&self, id: &str, name: &str) -> Result<Option<Bytes>, ServiceError> {
+        self.get(id, name).await
+    }
+
+    /// Which version of file `name` beside clip `id` the shared store holds (its entity tag, else
+    /// its time and size), `None` when it holds none: what a replica compares before fetching.
+    pub async fn version(&self, id: &str, name: &str) -> Result<Option<String>, ServiceError> {
+        match self.store.head(&self.path(id, name)).await {
+            Ok(meta) => Ok(Some(meta.e_tag.unwrap_or_else(|| {
+                format!(
+                    "{}-{}",
+                    meta.last_modified.timestamp_nanos_opt().unwrap_or(0),
+                    meta.size
+                )
+            }))),
+            Err(object_store::Error::NotFound { .. }) => Ok(None),
+            Err(e) => Err(shared_error(id, "fetching", &e)),
+        }
+    }
+
     /// Deletes clip `id` from the shared store; whether it was there.
     pub async fn delete(&self, id: &str) -> Result<bool, ServiceError> {
         let Some(record) = self.record(id).await? else {
@@ -263,14 +301,36 @@ impl SharedClips {
         // The record first: from then on no replica fetches it.
         let mut names = vec!["clip.json".to_owned(), "features.f32".to_owned()];
         names.extend((0..record.context_times.len()).map(frame_name));
+        names.extend(kept_names(&record));
         for name in names {
             match self.store.delete(&self.path(id, &name)).await {
                 Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
                 Err(e) => return Err(shared_error(id, "deleting", &e)),
             }
         }
+        // Then whatever else was kept beside the clip (its fitted scene, say).
+        use futures_util::TryStreamExt;
+        let prefix = self.root.clone().join(id);
+        let rest: Vec<object_store::ObjectMeta> = self
+            .store
+            .list(Some(&prefix))
+            .try_collect()
+            .await
+            .map_err(|e| shared_error(id, "deleting", &e))?;
+        for meta in rest {
+            match self.store.delete(&meta.location).await {
+                Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
+                Err(e) => return Err(shared_error(id, "deleting", &e)),
+            }
+        }
         Ok(true)
     }
+}
+
+/// The kept source frames' object names.
+fn kept_names(record: &ClipRecord) -> impl Iterator<Item = String> + use<> {
+    let kept = record.kept_frames.as_ref().map_or(0, |k| k.times.len());
+    (0..kept).map(KeptFrames::name)
 }
 
 fn frame_name(index: usize) -> String {

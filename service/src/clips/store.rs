@@ -39,7 +39,7 @@ use tokio::sync::OnceCell;
 
 use crate::ServiceError;
 use crate::clips::durable::{sync_dir, write_synced};
-use crate::clips::record::ClipRecord;
+use crate::clips::record::{ClipRecord, KeptFrames};
 use crate::clips::shared::{Claim, RECHECK, SHARED_MARK, SharedClips};
 use crate::faults;
 use crate::quoted;
@@ -52,6 +52,8 @@ pub struct NewClip {
     pub encoding: Encoding,
     /// Its context frames (kept for rendering comparisons and refinement).
     pub frames: Vec<RgbImage>,
+    /// Source frames kept for fits ([`ClipRecord::kept_frames`] describes them).
+    pub kept_frames: Vec<RgbImage>,
 }
 
 /// See the module documentation.
@@ -418,8 +420,9 @@ impl ClipStore {
                 record,
                 encoding,
                 frames,
+                kept_frames,
             } = new;
-            write_clip(&dir, &record, &encoding, &frames)?;
+            write_clip(&dir, &record, &encoding, &frames, &kept_frames)?;
             faults::pause("clip-stored");
             let id = record.id.clone();
             let mut state = lock(&state);
@@ -459,6 +462,11 @@ impl ClipStore {
         Ok(encoding)
     }
 
+    /// The cluster's clips, when this store is a replica's cache of them.
+    pub fn shared(&self) -> Option<&SharedClips> {
+        self.shared.as_ref().map(|(shared, _)| shared)
+    }
+
     /// A file `name` kept in clip `id`'s directory beside its record (derived data, deleted
     /// with the clip).
     pub fn clip_file(&self, id: &str, name: &str) -> PathBuf {
@@ -471,6 +479,11 @@ impl ClipStore {
             .join(id)
             .join("frames")
             .join(format!("{index:03}.png"))
+    }
+
+    /// Where kept source frame `index` (in time order) of clip `id` is stored, as PNG.
+    pub fn kept_frame_path(&self, id: &str, index: usize) -> PathBuf {
+        self.dir.join(id).join(KeptFrames::name(index))
     }
 
     /// Records that clip `id`, held here, is in the shared store (so its copy is checked
@@ -640,9 +653,10 @@ fn write_clip(
     record: &ClipRecord,
     encoding: &Encoding,
     frames: &[RgbImage],
+    kept_frames: &[RgbImage],
 ) -> Result<(), ServiceError> {
     let tmp = root.join(format!(".tmp-{}-{}", record.id, nonce()));
-    let result = write_clip_files(&tmp, record, encoding, frames).and_then(|()| {
+    let result = write_clip_files(&tmp, record, encoding, frames, kept_frames).and_then(|()| {
         let target = root.join(&record.id);
         if target.exists() {
             // Another writer finished first with the same content.
@@ -668,6 +682,7 @@ fn write_clip_files(
     record: &ClipRecord,
     encoding: &Encoding,
     frames: &[RgbImage],
+    kept_frames: &[RgbImage],
 ) -> Result<(), ServiceError> {
     let frames_dir = tmp.join("frames");
     std::fs::create_dir_all(&frames_dir).map_err(|e| store_error(record, "creating it", &e))?;
@@ -684,23 +699,36 @@ fn write_clip_files(
         .map_err(|e| store_error(record, "features", &e))?;
     faults::pause("clip-features-written");
     for (i, frame) in frames.iter().enumerate() {
-        // Encoded in memory, so that a write error is seen (a buffered writer's last flush, on
-        // drop, would lose it). Fast compression: written once per upload, on its clock.
-        let mut png = Vec::new();
-        let encoder =
-            PngEncoder::new_with_quality(&mut png, CompressionType::Fast, FilterType::Adaptive);
-        frame.write_with_encoder(encoder).map_err(|e| {
-            ServiceError::Internal(format!(
-                "cannot encode context frame {i} of clip {}: {e}",
-                record.id
-            ))
-        })?;
-        write_synced(&frames_dir.join(format!("{i:03}.png")), &png)
-            .map_err(|e| store_error(record, "a context frame", &e))?;
+        write_png(&frames_dir.join(format!("{i:03}.png")), frame)
+            .map_err(|e| store_error(record, &format!("context frame {i}"), &e))?;
     }
-    sync_dir(&frames_dir)
-        .and_then(|()| sync_dir(tmp))
+    let mut dirs = vec![frames_dir];
+    if !kept_frames.is_empty() {
+        let kept_dir = tmp.join(KeptFrames::DIR);
+        std::fs::create_dir_all(&kept_dir).map_err(|e| store_error(record, "creating it", &e))?;
+        for (i, frame) in kept_frames.iter().enumerate() {
+            write_png(&tmp.join(KeptFrames::name(i)), frame)
+                .map_err(|e| store_error(record, &format!("kept frame {i}"), &e))?;
+        }
+        dirs.push(kept_dir);
+    }
+    dirs.push(tmp.to_path_buf());
+    dirs.iter()
+        .try_for_each(|dir| sync_dir(dir))
         .map_err(|e| store_error(record, "syncing it", &e))
+}
+
+/// `frame` as PNG at `path`, synced. Encoded in memory, so that a write error is seen (a
+/// buffered writer's last flush, on drop, would lose it). Fast compression: written once per
+/// upload, on its clock.
+fn write_png(path: &Path, frame: &RgbImage) -> std::io::Result<()> {
+    let mut png = Vec::new();
+    let encoder =
+        PngEncoder::new_with_quality(&mut png, CompressionType::Fast, FilterType::Adaptive);
+    frame
+        .write_with_encoder(encoder)
+        .map_err(std::io::Error::other)?;
+    write_synced(path, &png)
 }
 
 fn read_features(dir: &Path, record: &ClipRecord) -> Result<Encoding, ServiceError> {

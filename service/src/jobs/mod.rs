@@ -13,6 +13,7 @@
 //! | [`disk`] | the default: one replica's jobs in its store directory |
 //! | [`postgres`] | many replicas' jobs in one PostgreSQL database (`C4G_JOB_DATABASE`) |
 //! | [`refine`] | what a refinement asks for, checked when submitted, and the video a worker gets |
+//! | [`fit`] | what a fit asks for, the frames and start a fit worker gets, and its result kept as the clip's fitted scene |
 //!
 //! Both stores are held to the same behaviour by one set of tests (`tests/e2e/job_queues.rs`).
 
@@ -29,6 +30,7 @@ use crate::clips::record::now;
 use crate::quoted;
 
 pub mod disk;
+pub mod fit;
 pub mod postgres;
 pub mod refine;
 mod transitions;
@@ -73,8 +75,27 @@ impl JobState {
     }
 }
 
+/// Which queue a job is in: what it does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum JobKind {
+    /// A refinement of novel views (`c4g-refiner` workers).
+    Refine,
+    /// A fit of the clip's scene to its frames (`c4g-fitter` workers).
+    Fit,
+}
+
+impl JobKind {
+    /// The name the API shows.
+    pub fn name(self) -> &'static str {
+        match self {
+            JobKind::Refine => "refine",
+            JobKind::Fit => "fit",
+        }
+    }
+}
+
 /// Progress of a running job.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Progress {
     /// Steps done.
     pub step: u32,
@@ -82,6 +103,18 @@ pub struct Progress {
     pub steps: u32,
     /// What the worker is doing.
     pub stage: String,
+    /// A fit's loss at its latest step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loss: Option<f64>,
+    /// A fit's mean PSNR on its held-out frames, when it last scored them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub holdout_psnr: Option<f64>,
+    /// A fit's Gaussians per keyframe.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gaussians: Option<u64>,
+    /// Seconds the worker has spent on this attempt.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub elapsed_s: Option<f64>,
 }
 
 /// A job as stored and as the API shows it.

@@ -1,6 +1,8 @@
 //! What a request keeps of a clip's Gaussians, and where the sets of a multi-time request come
 //! from: decided once by the [`SetSource`](crate::sets::SetSource), then served piece by piece.
 
+use std::sync::Arc;
+
 use c4g_engine::{KeyframeTrack, QuerySubset};
 use c4g_scene::GaussianSet;
 
@@ -34,7 +36,7 @@ impl Kept {
 /// ([`SetSource::plan_sets_now`](crate::sets::SetSource::plan_sets_now)), then served piece by piece ([`SetSource::sets_now`](crate::sets::SetSource::sets_now)).
 pub struct SetPlan {
     /// The keyframes to interpolate from (`None`: every set decoded exactly).
-    pub(crate) track: Option<KeyframeTrack>,
+    pub(crate) track: Option<Arc<KeyframeTrack>>,
     /// The Gaussians kept, and the queries decoded.
     pub(crate) kept: Kept,
 }

@@ -8,12 +8,16 @@
 //! measures (`docs/tradeoffs.md` has the table, the plot and the rule that chose them); the
 //! default, `exact`, changes nothing.
 
+use std::sync::Arc;
+
 use c4g_analysis::pruning::PruneOptions;
 use c4g_engine::Keyframes;
 use serde::{Deserialize, Serialize};
 
 use crate::ServiceError;
+use crate::clips::fitted::Fitted;
 use crate::sets::keyframes::{self, KeyframesSpec};
+use crate::sets::scene::Scene;
 
 /// A named point of the speed/accuracy trade.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -139,6 +143,18 @@ pub struct QualitySpec {
     pub keyframes: Option<KeyframesSpec>,
     /// Pruning, overriding the preset's.
     pub prune: Option<PruneSpec>,
+    /// Which scene serves the request (default: auto).
+    pub scene: Scene,
+}
+
+impl QualitySpec {
+    /// Whether the request asks for an approximation of the model's answer (a preset other than
+    /// exact, keyframes or pruning): what only the feed-forward scene serves.
+    pub fn approximates(&self) -> bool {
+        self.preset.is_some_and(|p| p != Preset::Exact)
+            || self.keyframes.is_some()
+            || self.prune.is_some()
+    }
 }
 
 /// The trade a request gets, checked.
@@ -150,6 +166,8 @@ pub struct Approximation {
     pub prune: Option<PruneOptions>,
     /// Whether the dropped Gaussians' queries leave the decoder too (only with `prune`).
     pub drop_queries: bool,
+    /// The fitted scene that serves the request instead of the decoder (`None`: the model's).
+    pub fitted: Option<Arc<Fitted>>,
 }
 
 impl Approximation {
@@ -158,12 +176,13 @@ impl Approximation {
         keyframes: Keyframes::Exact,
         prune: None,
         drop_queries: false,
+        fitted: None,
     };
 
     /// Whether this is what the model computes (so it can be decoded in a batch with others'
     /// exact decodes).
     pub fn is_exact(&self) -> bool {
-        matches!(self.keyframes, Keyframes::Exact) && self.prune.is_none()
+        matches!(self.keyframes, Keyframes::Exact) && self.prune.is_none() && self.fitted.is_none()
     }
 }
 
@@ -186,6 +205,7 @@ pub fn resolve(
         keyframes,
         prune,
         drop_queries,
+        fitted: None,
     })
 }
 
@@ -259,7 +279,10 @@ mod tests {
                 opacity: Some(0.0),
                 drop_queries: None,
             }),
+            scene: Scene::Auto,
         };
+        assert!(spec.approximates());
+        assert!(!QualitySpec::default().approximates());
         let approx = resolve(&spec, &TIMES, 64, SPACING).unwrap();
         assert_eq!(approx.keyframes, Keyframes::Count { n: 2 });
         let prune = approx.prune.unwrap();

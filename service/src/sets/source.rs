@@ -1,9 +1,10 @@
 //! [`SetSource`]: the one answer to "the Gaussian sets of this clip at these times, under these
 //! options". Exact decodes (batched across requests), keyframed ones, quality presets and pruning
 //! all resolve here, on work slots; renders, streams, exports, tracks and refinement jobs ask it
-//! for sets. (Decodes with lifted features still run the feature decoder from the views'
-//! `features` module: moving them behind this seam is the next step.) It asks only the clips
-//! layer (records and encodings) below it.
+//! for sets. A clip's fitted scene is served here too, in place of the decoder, when the request's
+//! scene resolves to it ([`crate::sets::scene`]). (Decodes with lifted features still run the
+//! feature decoder from the views' `features` module: moving them behind this seam is the next
+//! step.) It asks only the clips layer (records, encodings, fitted scenes) below it.
 
 use std::sync::Arc;
 
@@ -11,6 +12,7 @@ use c4g_engine::{Encoding, Engine, EngineError, KeyframeTrack, Keyframes, QueryS
 use c4g_scene::{Footprint, GaussianSet};
 
 use crate::ServiceError;
+use crate::clips::fitted::{Fitted, FittedScenes};
 use crate::clips::record::ClipRecord;
 use crate::clips::store::ClipStore;
 use crate::config::Limits;
@@ -19,6 +21,7 @@ use crate::sets::decoder::{self, count_sets};
 use crate::sets::plan::{Kept, SetPlan};
 use crate::sets::pruning::Analyses;
 use crate::sets::quality::{self, Approximation, QualitySpec};
+use crate::sets::scene::Scene;
 use crate::work::WorkSlots;
 
 /// See the module documentation.
@@ -37,6 +40,8 @@ pub struct SetSource {
     analyses: Analyses,
     /// The package's footprint: pruning's renders see what the service renders.
     footprint: Footprint,
+    /// Every clip's fitted scene.
+    pub fitted: Arc<FittedScenes>,
 }
 
 impl SetSource {
@@ -50,6 +55,7 @@ impl SetSource {
         footprint: Footprint,
     ) -> Self {
         Self {
+            fitted: Arc::new(FittedScenes::new(store.clone())),
             engine,
             store,
             limits,
@@ -80,9 +86,63 @@ impl SetSource {
         self.batcher.decode(id, encoding, times).await
     }
 
-    /// Forgets what was measured of clip `id` (it was deleted).
+    /// Forgets what was measured of clip `id`, and its fitted scene (it was deleted).
     pub fn forget(&self, id: &str) {
         self.analyses.forget(id);
+        self.fitted.forget(id);
+    }
+
+    /// Pins `spec.scene` to the scene that serves a request on clip `id` (feed-forward or
+    /// fitted; the module documentation of [`crate::sets::scene`] says how `auto` chooses), and
+    /// says which. A request for lifted `features` is the feed-forward scene's.
+    pub async fn resolve_scene(
+        &self,
+        id: &str,
+        spec: &mut QualitySpec,
+        features: bool,
+    ) -> Result<Scene, ServiceError> {
+        if features {
+            if spec.scene == Scene::Fitted {
+                return Err(ServiceError::Unsupported(
+                    "lifted features are the feed-forward scene's: a fitted scene carries none \
+                     (ask scene \"auto\" or \"feed-forward\" with features)"
+                        .into(),
+                ));
+            }
+            spec.scene = Scene::FeedForward;
+            return Ok(Scene::FeedForward);
+        }
+        let scene = match spec.scene {
+            Scene::FeedForward => Scene::FeedForward,
+            Scene::Auto if spec.approximates() => Scene::FeedForward,
+            Scene::Auto => match self.fitted.get(id).await? {
+                Some(_) => Scene::Fitted,
+                None => Scene::FeedForward,
+            },
+            Scene::Fitted => {
+                if spec.approximates() {
+                    return Err(ServiceError::invalid(
+                        "the fitted scene is served as it was fitted: quality presets, keyframes \
+                         and pruning approximate the feed-forward scene (ask scene \
+                         \"feed-forward\", or leave them out)",
+                    ));
+                }
+                self.fitted_scene(id).await?;
+                Scene::Fitted
+            }
+        };
+        spec.scene = scene;
+        Ok(scene)
+    }
+
+    /// Clip `id`'s fitted scene, or `not_found` saying how to make one.
+    pub async fn fitted_scene(&self, id: &str) -> Result<Arc<Fitted>, ServiceError> {
+        self.fitted.get(id).await?.ok_or_else(|| {
+            ServiceError::NotFound(format!(
+                "clip {id} has no fitted scene: POST /v1/clips/{id}/fit makes one (or ask scene \
+                 \"auto\" or \"feed-forward\")"
+            ))
+        })
     }
 
     /// Checks that `times` can be decoded for `record`: finite, inside the context span, not
@@ -119,12 +179,21 @@ impl SetSource {
 
     /// The approximation a request over `times` of clip `record` asks for, checked (by
     /// default: exact). Presets space their keyframes by the clip's context spacing.
-    pub fn approximation(
+    pub async fn approximation(
         &self,
         record: &ClipRecord,
         spec: &QualitySpec,
         times: &[f64],
     ) -> Result<Approximation, ServiceError> {
+        let mut spec = *spec;
+        if self.resolve_scene(&record.id, &mut spec, false).await? == Scene::Fitted {
+            let fitted = self.fitted_scene(&record.id).await?;
+            return Ok(Approximation {
+                fitted: Some(fitted),
+                ..Approximation::EXACT
+            });
+        }
+        let spec = &spec;
         let spacing = quality::context_spacing(&record.context_times);
         let approximation = quality::resolve(spec, times, self.limits.max_times, spacing)?;
         // Refused before any work is spent: the package's decoder cannot drop queries.
@@ -147,7 +216,12 @@ impl SetSource {
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
         let record = self.store.get_or_fetch(id).await?;
         self.check_times(&record, &times)?;
-        let approximation = self.approximation(&record, &quality, &times)?;
+        let approximation = self.approximation(&record, &quality, &times).await?;
+        if let Some(fitted) = approximation.fitted {
+            return self
+                .work(move |sets| sets.interpolate_now(&fitted.track, &times))
+                .await;
+        }
         let encoding = self.store.encoding(id).await?;
         if approximation.is_exact() {
             return self.batcher.decode(id, encoding, times).await;
@@ -230,10 +304,21 @@ impl SetSource {
         times: &[f64],
         approximation: &Approximation,
     ) -> Result<SetPlan, ServiceError> {
+        if let Some(fitted) = &approximation.fitted {
+            return Ok(SetPlan {
+                track: Some(fitted.track.clone()),
+                kept: Kept {
+                    keep: None,
+                    queries: None,
+                },
+            });
+        }
         let kept = self.kept_now(id, encoding, approximation)?;
         let track = if approximation.keyframes.interpolates(times) {
             let keyframes = &approximation.keyframes;
-            Some(self.keyframe_track_now(encoding, times, keyframes, kept.queries.as_ref())?)
+            let track =
+                self.keyframe_track_now(encoding, times, keyframes, kept.queries.as_ref())?;
+            Some(Arc::new(track))
         } else {
             None
         };

@@ -140,7 +140,9 @@ pub async fn stream(
             i => (start + step * i as f64).min(end),
         })
         .collect();
-    let approximation = sets.approximation(&record, &request.quality, &times)?;
+    let approximation = sets
+        .approximation(&record, &request.quality, &times)
+        .await?;
     let encoding = sets.store.encoding(&record.id).await?;
     // With keyframes, those over the whole range are decoded now; each chunk is then
     // interpolated from them.

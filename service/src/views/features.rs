@@ -34,6 +34,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::ServiceError;
 use crate::sets::quality::{Approximation, QualitySpec};
+use crate::sets::scene::Scene;
 use crate::views::camera::{CameraSpec, InputSpec};
 use crate::views::feature_field::MapsKind;
 use crate::views::image_formats::{ImageFormat, encode_image, le_bytes};
@@ -192,15 +193,27 @@ impl Views {
     }
 
     /// The approximation a feature request asks for, checked: dropping queries is refused, since
-    /// the feature decoder decodes every query.
-    fn feature_approximation(
+    /// the feature decoder decodes every query; features are the feed-forward scene's (a fitted
+    /// scene carries none).
+    async fn feature_approximation(
         &self,
         record: &crate::clips::record::ClipRecord,
         quality: &QualitySpec,
         times: &[f64],
     ) -> Result<Approximation, ServiceError> {
         self.check_features()?;
-        let approximation = self.sets.approximation(record, quality, times)?;
+        if quality.scene == Scene::Fitted {
+            return Err(ServiceError::Unsupported(
+                "lifted features are the feed-forward scene's: a fitted scene carries none (ask \
+                 scene \"auto\" or \"feed-forward\" with features)"
+                    .into(),
+            ));
+        }
+        let quality = QualitySpec {
+            scene: Scene::FeedForward,
+            ..*quality
+        };
+        let approximation = self.sets.approximation(record, &quality, times).await?;
         if approximation.drop_queries {
             return Err(ServiceError::Unsupported(
                 "features and prune.drop_queries do not go together: the feature decoder decodes \
@@ -221,7 +234,9 @@ impl Views {
     ) -> Result<Vec<(f64, GaussianSet)>, ServiceError> {
         let record = self.store.get_or_fetch(id).await?;
         self.sets.check_times(&record, &times)?;
-        let approximation = self.feature_approximation(&record, &quality, &times)?;
+        let approximation = self
+            .feature_approximation(&record, &quality, &times)
+            .await?;
         let encoding = self.store.encoding(id).await?;
         let id = id.to_owned();
         self.work(move |views| views.feature_sets_now(&id, &encoding, &times, &approximation))
@@ -319,7 +334,9 @@ impl Views {
     ) -> Result<FeatureView, ServiceError> {
         let record = self.store.get_or_fetch(id).await?;
         let camera = self.view_camera(&record, &view)?;
-        let approximation = self.feature_approximation(&record, &quality, &[view.t])?;
+        let approximation = self
+            .feature_approximation(&record, &quality, &[view.t])
+            .await?;
         let encoding = self.store.encoding(id).await?;
         let id = id.to_owned();
         self.work(move |views| {

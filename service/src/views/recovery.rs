@@ -90,7 +90,12 @@ impl Views {
     ) -> Result<RecoveredCameras, ServiceError> {
         let record = self.store.get_or_fetch(id).await?;
         let times = record.context_times.clone();
-        let sets = self.sets.decode(id, times, Default::default()).await?;
+        // The model's own scene: a fitted one was fitted at the input cameras recovered here.
+        let feed_forward = crate::sets::quality::QualitySpec {
+            scene: crate::sets::scene::Scene::FeedForward,
+            ..Default::default()
+        };
+        let sets = self.sets.decode(id, times, feed_forward).await?;
         let owned = id.to_owned();
         self.work(move |views| {
             let targets = (0..record.context_times.len())

@@ -170,7 +170,10 @@ impl Views {
     ) -> Result<Image, ServiceError> {
         let record = self.store.get_or_fetch(id).await?;
         let camera = self.view_camera(&record, &view)?;
-        let approximation = self.sets.approximation(&record, &quality, &[view.t])?;
+        let approximation = self
+            .sets
+            .approximation(&record, &quality, &[view.t])
+            .await?;
         let encoding = self.store.encoding(id).await?;
         if approximation.is_exact() {
             let (_, set) = self
@@ -319,7 +322,7 @@ impl Views {
         let record = self.store.get_or_fetch(id).await?;
         let frames = self.plan_path(&record, path)?;
         let times: Vec<f64> = frames.iter().map(|(t, _)| *t).collect();
-        let approximation = self.sets.approximation(&record, quality, &times)?;
+        let approximation = self.sets.approximation(&record, quality, &times).await?;
         let encoding = self.store.encoding(id).await?;
         let plan = plan_sets(&self.sets, id, &encoding, &times, approximation).await?;
         let batch = self.engine.decode_batch_size(encoding.frame_count()).max(1);

@@ -18,7 +18,11 @@ module               what
 ``_http``            base URL, API key, the request type both clients send, error answers
 ``_errors``          :class:`C4GError` and one class per server error ``kind``
 ``_sets``            :class:`GaussianSet`: NumPy arrays in gsplat's conventions (and the lifted
-                     ``features``, when asked for); ``to_torch()``
+                     ``features``, when asked for); ``to_torch()``, ``to_ply()``, ``to_splat()``
+``_ply``             a set as the 3DGS ``.ply``; :data:`SCALE_FLOOR`, the floor under a scale
+                     before its logarithm
+``_splat``           a set as antimatter15's ``.splat``
+``_libm``            the C library's ``exp`` and ``log`` over arrays, bit for bit, at NumPy's speed
 ``_c4gs``            the ``C4GS`` binary sets (f32/f16, versions 1 and 2) the decodes are fetched as
 ``_c4gv``            :class:`C4GVDecoder`: the compact 4D stream, decoded incrementally
 ``_stream``          chunked answers as iterators: the C4GV stream, a job's events
@@ -70,6 +74,7 @@ from ._errors import (
 )
 from ._gsplat import GsplatRender, GsplatUnavailable, gsplat_available, render_with_gsplat
 from ._media import FeatureImage, Image, ScalarImage, Video
+from ._ply import SCALE_FLOOR
 from ._records import Clip, ClipSource, Export, Job, JobProgress, Mask, Model, Segment
 from ._sets import GaussianSet, TorchGaussianSet, stack
 from ._stream import AsyncSetStream, SetStream
@@ -114,6 +119,7 @@ __all__ = [
     "Prune",
     "Quality",
     "RetryableError",
+    "SCALE_FLOOR",
     "ScalarImage",
     "Segment",
     "SetStream",

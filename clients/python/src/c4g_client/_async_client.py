@@ -2,7 +2,9 @@
 :class:`~c4g_client.Client` with the same arguments and results, awaited.
 
 It sends the same :class:`~c4g_client._http.Call` values as the blocking client with an
-``httpx.AsyncClient``; streams are ``async for`` iterators. Methods are documented once, on
+``httpx.AsyncClient``, and its gRPC calls over one ``grpc.aio`` channel, opened by the first of
+them (in the event loop that makes it, which it is bound to) and closed by :meth:`aclose`;
+streams are ``async for`` iterators. Methods are documented once, on
 :class:`~c4g_client.Client`.
 """
 
@@ -46,9 +48,13 @@ class AsyncClient:
         self._http = httpx.AsyncClient(
             headers=auth_headers(self._api_key), timeout=timeout, transport=transport
         )
+        self._grpc_channel: Any = None
 
     async def aclose(self) -> None:
         await self._http.aclose()
+        if self._grpc_channel is not None:
+            await self._grpc_channel.close()
+            self._grpc_channel = None
 
     async def __aenter__(self) -> AsyncClient:
         return self
@@ -58,6 +64,14 @@ class AsyncClient:
 
     def __repr__(self) -> str:
         return f"AsyncClient({self.base_url!r})"
+
+    def _channel(self) -> Any:
+        """The client's ``grpc.aio`` channel, opened by the first gRPC call: later calls reuse it."""
+        if self._http.is_closed:
+            raise RuntimeError("the client is closed: make a new one")
+        if self._grpc_channel is None:
+            self._grpc_channel = _grpc.open_channel(self.base_url, aio=True)
+        return self._grpc_channel
 
     async def _send(self, call: Call[Any], *, stream: bool = False) -> httpx.Response:
         request = call.request(self._http, self.base_url)
@@ -286,7 +300,7 @@ class AsyncClient:
             compact=None if compact is None else (compact, keyframe_interval),
         )
         return await _grpc.AsyncGrpcSetStream(
-            self.base_url, self._api_key, request, compact is not None
+            self._channel(), self._api_key, request, compact is not None
         ).start()
 
     @overload
@@ -335,7 +349,7 @@ class AsyncClient:
             prune=prune,
             features=features,
         )
-        sets = await _grpc.adecode(self.base_url, self._api_key, request)
+        sets = await _grpc.adecode(self._channel(), self._api_key, request)
         return sets[0] if isinstance(t, numbers.Real) else sets
 
     async def render(

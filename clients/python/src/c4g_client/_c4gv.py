@@ -16,14 +16,15 @@ the frame before in a delta frame.
 Why the values are the Rust decoder's bit for bit: every value is computed as the spec says, in
 ``float64`` and then rounded to ``float32``, with the same operations in the same order
 (``x*x + y*y + ...`` left to right for a quaternion's norm; IEEE multiply, divide and sqrt are
-correctly rounded in both). The one transcendental, ``exp`` of a log-scale cell, goes through
-:func:`math.exp`: the C library's ``exp``, the same function Rust's ``f64::exp`` calls on Linux,
-rather than NumPy's vectorised ``exp``, which may differ in the last bit.
+correctly rounded in both). The one transcendental, ``exp`` of a log-scale cell, is the C
+library's ``exp``, the same function Rust's ``f64::exp`` calls on Linux, rounded to ``float32``
+(``_libm.exp_f32``: NumPy's ``exp`` where its last bit cannot matter, the C library's where it
+could).
 
-Varints are decoded with NumPy over a whole body at once, so a set costs a handful of array
-operations, not 14·N Python steps. Every length is checked against what it can be before
-anything is buffered for it, so a truncated or corrupt stream is a :class:`FormatError` that says
-what is wrong.
+Everything is done with NumPy over a whole record at once (the varints too), so a set costs a
+few dozen array operations, not 14·N Python steps (``benches/c4gv_read.py`` times it). Every
+length is checked against what it can be before anything is buffered for it, so a truncated or
+corrupt stream is a :class:`FormatError` that says what is wrong.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from typing import Iterator, List, NamedTuple, Optional, Tuple
 import numpy as np
 
 from ._errors import FormatError, StreamInterrupted
+from ._libm import exp_f32
 from ._sets import GaussianSet
 
 MAGIC = b"C4GV"
@@ -68,6 +70,10 @@ class Steps(NamedTuple):
     rotation: float
     opacity: float
     color: float
+
+    def per_channel(self) -> np.ndarray:
+        """The step of each of a body's 14 columns, in column order."""
+        return np.repeat(np.array(self, dtype=np.float64), (3, 3, 4, 1, 3))
 
 
 class Header(NamedTuple):
@@ -354,7 +360,12 @@ def _inflate(stored: bytes, raw: int, what: str) -> bytes:
 
 
 def _varints(body: bytes, n: int, what: str) -> np.ndarray:
-    """``n`` zigzag LEB128 varints of at most five bytes that fill ``body`` exactly, as int64."""
+    """``n`` zigzag LEB128 varints of at most five bytes that fill ``body`` exactly, as int64.
+
+    Byte by byte place rather than varint by varint: every varint's first byte at once, then
+    its second byte for those that have one, and so on (at most five rounds). Most varints of a
+    delta frame are one byte, so the later rounds touch few; a body of one-byte varints is
+    its bytes."""
     data = np.frombuffer(body, dtype=np.uint8)
     if n == 0:
         if len(data):
@@ -364,17 +375,26 @@ def _varints(body: bytes, n: int, what: str) -> np.ndarray:
     if len(ends) < n:
         raise FormatError(f"{what}: a varint is cut short or too long")
     ends = ends[:n]
-    starts = np.concatenate(([0], ends[:-1] + 1))
-    lengths = ends - starts + 1
-    if int(lengths.max()) > VARINT_MAX:
-        raise FormatError(f"{what}: a varint is cut short or too long")
-    used = int(ends[-1]) + 1
-    if used != len(data):
-        raise FormatError(f"{what}: {len(data) - used} bytes after the last value")
-    place = np.arange(used, dtype=np.int64) - np.repeat(starts, lengths)
-    shifted = (data.astype(np.uint64) & np.uint64(0x7F)) << (np.uint64(7) * place.astype(np.uint64))
-    unsigned = np.add.reduceat(shifted, starts)
-    return (unsigned >> np.uint64(1)).astype(np.int64) ^ -(unsigned & np.uint64(1)).astype(np.int64)
+    if len(data) == n:
+        unsigned = data.astype(np.int64)
+    else:
+        starts = np.empty(n, dtype=np.int64)
+        starts[0] = 0
+        starts[1:] = ends[:-1] + 1
+        extra = ends - starts
+        if int(extra.max()) >= VARINT_MAX:
+            raise FormatError(f"{what}: a varint is cut short or too long")
+        used = int(ends[-1]) + 1
+        if used != len(data):
+            raise FormatError(f"{what}: {len(data) - used} bytes after the last value")
+        unsigned = (data[starts] & 0x7F).astype(np.int64)
+        longer = np.flatnonzero(extra)
+        for place in range(1, VARINT_MAX):
+            if not len(longer):
+                break
+            unsigned[longer] |= (data[starts[longer] + place] & 0x7F).astype(np.int64) << (7 * place)
+            longer = longer[extra[longer] > place]
+    return (unsigned >> 1) ^ -(unsigned & 1)
 
 
 def _check_cells(cells: np.ndarray, ids: np.ndarray, what: str) -> None:
@@ -394,23 +414,17 @@ def _check_time(frame: int, time: float, last: Optional[float]) -> None:
         )
 
 
-def _exp(products: np.ndarray) -> np.ndarray:
-    """``exp`` of each value through the C library (see the module doc), once per distinct
-    value: a set's log-scale cells repeat a lot."""
-    unique, inverse = np.unique(products, return_inverse=True)
-    table = np.array([math.exp(v) for v in unique.tolist()], dtype=np.float64)
-    return table[inverse].reshape(products.shape)
-
-
 def _reconstruct(
     cells: np.ndarray, steps: Steps, ids: np.ndarray, what: str
 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The values of ``(k, 14)`` cells: means, quats, scales, opacities, colours (float32)."""
-    c = cells.astype(np.float64)
-    means = (c[:, 0:3] * steps.position).astype(np.float32)
-    scales = _exp(c[:, 3:6] * steps.log_scale).astype(np.float32)
-    q = c[:, 6:10] * steps.rotation
-    norm = np.sqrt(q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3])
+    """The values of ``(k, 14)`` cells: means, quats, scales, opacities, colours (float32).
+    Every cell times its channel's step in one product (``float64``, as the spec says)."""
+    products = cells * steps.per_channel()
+    narrow = products.astype(np.float32)
+    scales = exp_f32(products[:, 3:6])
+    q = products[:, 6:10]
+    squares = q * q
+    norm = np.sqrt(squares[:, 0] + squares[:, 1] + squares[:, 2] + squares[:, 3])
     bad = ~(np.isfinite(norm) & (norm != 0.0))
     if bad.any():
         i = int(ids[np.flatnonzero(bad)[0]])
@@ -418,8 +432,7 @@ def _reconstruct(
             f"{what}: Gaussian {i}'s rotation decodes to no unit quaternion (zero or not finite)"
         )
     quats = (q / norm[:, None]).astype(np.float32)
-    opacities = (c[:, 10] * steps.opacity).astype(np.float32)
-    colors = (c[:, 11:14] * steps.color).astype(np.float32)
+    means, opacities, colors = narrow[:, 0:3].copy(), narrow[:, 10].copy(), narrow[:, 11:14].copy()
     return means, quats, scales, opacities, colors
 
 
@@ -432,7 +445,10 @@ def _assemble(
     moving: Tuple[np.ndarray, ...],
 ) -> GaussianSet:
     """The whole set: the moving Gaussians' values among the held static ones, in Gaussian
-    order."""
+    order. A stream without static Gaussians (every feed-forward one) is its moving values as
+    they are: each frame's arrays are its own, made by :func:`_reconstruct`."""
+    if not len(statics):
+        return GaussianSet(float(time), *moving)
     widths = (3, 4, 3, 1, 3)
     columns = []
     for width, fixed, changing in zip(widths, held, moving):
@@ -447,13 +463,27 @@ def _assemble(
 
 def _validate(s: GaussianSet, what: str) -> None:
     """The canonical layout's invariants (``GaussianSet::validate``), which the Rust decoder
-    holds every decoded set to: so a hostile stream gives valid sets or an error."""
+    holds every decoded set to: so a hostile stream gives valid sets or an error.
+
+    A whole-array test first (a NaN fails every comparison, so the extremes catch it too), and
+    the Gaussian-by-Gaussian one only to say which Gaussian broke which invariant."""
     norm = np.sqrt(
         s.quats[:, 0] * s.quats[:, 0]
         + s.quats[:, 1] * s.quats[:, 1]
         + s.quats[:, 2] * s.quats[:, 2]
         + s.quats[:, 3] * s.quats[:, 3]
     )
+    if not len(s) or (
+        np.isfinite(s.means).all()
+        and s.scales.min() >= 0
+        and s.scales.max() < math.inf
+        and np.abs(norm - 1).max() <= ROTATION_NORM_TOLERANCE
+        and s.opacities.min() >= 0
+        and s.opacities.max() <= 1
+        and s.colors.min() >= 0
+        and s.colors.max() < math.inf
+    ):
+        return
     checks = [
         (np.isfinite(s.means).all(axis=1), "a position is not finite"),
         ((np.isfinite(s.scales) & (s.scales >= 0)).all(axis=1), "a scale is not finite and non-negative"),

@@ -1,7 +1,8 @@
 """The blocking client: :class:`Client`, one method per operation of the service.
 
 Each method builds its request from ``_endpoints.py`` and sends it with an ``httpx.Client``
-(a connection pool, so keep one client and reuse it; close it, or use ``with``). Errors the
+(a connection pool, so keep one client and reuse it; close it, or use ``with``). gRPC calls go
+over one channel, opened by the first of them and closed with the client. Errors the
 server answers raise the kind's exception (:mod:`c4g_client` lists them); a connection that
 fails raises :class:`~c4g_client.TransportError`.
 """
@@ -67,10 +68,14 @@ class Client:
         self.base_url = default_url(base_url)
         self._api_key = default_key(api_key)
         self._http = httpx.Client(headers=auth_headers(self._api_key), timeout=timeout, transport=transport)
+        self._grpc_channel: Any = None
 
     def close(self) -> None:
-        """Closes the connection pool."""
+        """Closes the connection pool and the gRPC channel (ending any gRPC stream still open)."""
         self._http.close()
+        if self._grpc_channel is not None:
+            self._grpc_channel.close()
+            self._grpc_channel = None
 
     def __enter__(self) -> Client:
         return self
@@ -97,6 +102,14 @@ class Client:
 
     def _run(self, call: Call[T]) -> T:
         return call.parse(self._send(call))
+
+    def _channel(self) -> Any:
+        """The client's gRPC channel, opened by the first gRPC call: later calls reuse it."""
+        if self._http.is_closed:
+            raise RuntimeError("the client is closed: make a new one")
+        if self._grpc_channel is None:
+            self._grpc_channel = _grpc.open_channel(self.base_url)
+        return self._grpc_channel
 
     # -- service ----------------------------------------------------------------------------
 
@@ -347,7 +360,7 @@ class Client:
             prune=prune,
             compact=None if compact is None else (compact, keyframe_interval),
         )
-        return _grpc.GrpcSetStream(self.base_url, self._api_key, request, compact is not None)
+        return _grpc.GrpcSetStream(self._channel(), self._api_key, request, compact is not None)
 
     @overload
     def grpc_decode(
@@ -397,7 +410,7 @@ class Client:
             prune=prune,
             features=features,
         )
-        sets = _grpc.decode(self.base_url, self._api_key, request)
+        sets = _grpc.decode(self._channel(), self._api_key, request)
         return sets[0] if isinstance(t, numbers.Real) else sets
 
     # -- rendering --------------------------------------------------------------------------

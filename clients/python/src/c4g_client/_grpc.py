@@ -10,6 +10,10 @@ stub, so the package carries no grpcio-version-pinned code. Each set is packed c
 or ``f16``, read like ``C4GS``, ``feature_width`` and ``features`` its sixth), or, for a compact
 stream, a piece of one ``C4GV`` stream fed to the same incremental decoder as the REST stream.
 
+A client opens one channel (one HTTP/2 connection) on its first gRPC call and makes every
+later call on it, as its ``httpx`` pool does for REST: no connection set-up per call, and one
+socket however many calls are made. The client closes it.
+
 Errors carry the server's kind from the ``c4g-error-kind`` metadata entry, so a gRPC
 ``NOT_FOUND`` raises the same :class:`~c4g_client.NotFound` as REST's 404. The first set is
 fetched before the call returns, so a bad request fails at the call, as REST's does.
@@ -175,52 +179,48 @@ def set_of(frame: Any) -> GaussianSet:
 
 #: A ``Decode`` answer is every set in one message: 10 sets of c4g-tiny with features are 2.9
 #: MB, past grpcio's default 4 MiB receive limit at 14 sets, so the client takes what it asked for.
-_DECODE_OPTIONS = [("grpc.max_receive_message_length", -1)]
+#: One channel carries every call, so the limit is the channel's.
+_CHANNEL_OPTIONS = [("grpc.max_receive_message_length", -1)]
 
 
-def _channel(grpc: Any, base_url: str, aio: bool = False, options: Optional[List[Any]] = None) -> Any:
+def open_channel(base_url: str, aio: bool = False) -> Any:
+    """A channel to the server at ``base_url`` (``grpc.aio``'s with ``aio``), for a client to
+    keep: it connects on its first call."""
+    grpc, _ = _modules()
     target, secure = target_for(base_url)
     module = grpc.aio if aio else grpc
     if secure:
-        return module.secure_channel(target, grpc.ssl_channel_credentials(), options=options)
-    return module.insecure_channel(target, options=options)
+        return module.secure_channel(target, grpc.ssl_channel_credentials(), options=_CHANNEL_OPTIONS)
+    return module.insecure_channel(target, options=_CHANNEL_OPTIONS)
 
 
-def decode(base_url: str, api_key: Optional[str], request: Any) -> List[GaussianSet]:
-    """The sets of a ``Decode`` call, in the order of the request's times."""
+def decode(channel: Any, api_key: Optional[str], request: Any) -> List[GaussianSet]:
+    """The sets of a ``Decode`` call on ``channel``, in the order of the request's times."""
     grpc, pb = _modules()
-    channel = _channel(grpc, base_url, options=_DECODE_OPTIONS)
+    method = channel.unary_unary(
+        DECODE_METHOD,
+        request_serializer=pb.DecodeRequest.SerializeToString,
+        response_deserializer=pb.DecodeResponse.FromString,
+    )
     try:
-        method = channel.unary_unary(
-            DECODE_METHOD,
-            request_serializer=pb.DecodeRequest.SerializeToString,
-            response_deserializer=pb.DecodeResponse.FromString,
-        )
-        try:
-            response = method(request, metadata=metadata_for(api_key))
-        except grpc.RpcError as e:
-            raise error_from(e) from None
-    finally:
-        channel.close()
+        response = method(request, metadata=metadata_for(api_key))
+    except grpc.RpcError as e:
+        raise error_from(e) from None
     return [set_of(frame) for frame in response.frames]
 
 
-async def adecode(base_url: str, api_key: Optional[str], request: Any) -> List[GaussianSet]:
-    """:func:`decode` for asyncio (``grpc.aio``)."""
+async def adecode(channel: Any, api_key: Optional[str], request: Any) -> List[GaussianSet]:
+    """:func:`decode` for asyncio, on a ``grpc.aio`` channel."""
     grpc, pb = _modules()
-    channel = _channel(grpc, base_url, aio=True, options=_DECODE_OPTIONS)
+    method = channel.unary_unary(
+        DECODE_METHOD,
+        request_serializer=pb.DecodeRequest.SerializeToString,
+        response_deserializer=pb.DecodeResponse.FromString,
+    )
     try:
-        method = channel.unary_unary(
-            DECODE_METHOD,
-            request_serializer=pb.DecodeRequest.SerializeToString,
-            response_deserializer=pb.DecodeResponse.FromString,
-        )
-        try:
-            response = await method(request, metadata=metadata_for(api_key))
-        except grpc.RpcError as e:
-            raise error_from(e) from None
-    finally:
-        await channel.close()
+        response = await method(request, metadata=metadata_for(api_key))
+    except grpc.RpcError as e:
+        raise error_from(e) from None
     return [set_of(frame) for frame in response.frames]
 
 
@@ -242,14 +242,13 @@ class _Frames:
 
 
 class GrpcSetStream:
-    """Sets in time order from a ``StreamGaussians`` call (close it, or use ``with``, to stop
-    early: the server stops decoding)."""
+    """Sets in time order from a ``StreamGaussians`` call on the client's channel (close it, or
+    use ``with``, to stop early: the server stops decoding; the channel stays the client's)."""
 
-    def __init__(self, base_url: str, api_key: Optional[str], request: Any, compact: bool) -> None:
+    def __init__(self, channel: Any, api_key: Optional[str], request: Any, compact: bool) -> None:
         grpc, pb = _modules()
         self._grpc = grpc
-        self._channel = _channel(grpc, base_url)
-        method = self._channel.unary_stream(
+        method = channel.unary_stream(
             METHOD,
             request_serializer=pb.StreamGaussiansRequest.SerializeToString,
             response_deserializer=pb.GaussianFrame.FromString,
@@ -293,11 +292,8 @@ class GrpcSetStream:
         return self._pending.pop(0)
 
     def close(self) -> None:
-        """Cancels the call (if still running) and closes the channel."""
-        try:
-            self._call.cancel()
-        finally:
-            self._channel.close()
+        """Cancels the call (if still running)."""
+        self._call.cancel()
 
     def __enter__(self) -> GrpcSetStream:
         return self
@@ -310,11 +306,10 @@ class AsyncGrpcSetStream:
     """:class:`GrpcSetStream` for asyncio (``grpc.aio``); make one with
     :meth:`AsyncClient.grpc_stream <c4g_client.AsyncClient.grpc_stream>`."""
 
-    def __init__(self, base_url: str, api_key: Optional[str], request: Any, compact: bool) -> None:
+    def __init__(self, channel: Any, api_key: Optional[str], request: Any, compact: bool) -> None:
         grpc, pb = _modules()
         self._grpc = grpc
-        self._channel = _channel(grpc, base_url, aio=True)
-        method = self._channel.unary_stream(
+        method = channel.unary_stream(
             METHOD,
             request_serializer=pb.StreamGaussiansRequest.SerializeToString,
             response_deserializer=pb.GaussianFrame.FromString,
@@ -362,8 +357,8 @@ class AsyncGrpcSetStream:
         return self._pending.pop(0)
 
     async def aclose(self) -> None:
+        """Cancels the call (if still running)."""
         self._call.cancel()
-        await self._channel.close()
 
     async def __aenter__(self) -> AsyncGrpcSetStream:
         return self

@@ -1,10 +1,13 @@
 """Loading checkpoints in the official C4G layout: a Lightning checkpoint whose `state_dict` keys carry
-the prefix `encoder.`. Keys must match exactly; a mismatch names every missing or unexpected key."""
+the prefix `encoder.`. Keys must match exactly; a mismatch names every missing or unexpected key. The
+keys of parts the official model has and inference never runs are dropped, and the reader says which,
+how many parameters they hold, and why, to whoever asks (the export tool prints it)."""
 
 from __future__ import annotations
 
 import hashlib
 from pathlib import Path
+from typing import Callable
 
 import torch
 
@@ -12,16 +15,21 @@ from .config import C4GConfig
 from .network import C4G, is_feature_stream
 
 PREFIX = "encoder."
-# Present in the official checkpoint, unused at inference: the visualisation-only DPT head.
-IGNORED_PREFIXES = ("dpt_head.",)
+# Present in the official checkpoint (62 keys, 32.7M parameters), unused at inference: dropped, with
+# the reason the reader gives for each.
+IGNORED = {
+    "dpt_head.": "the DPT head, which the official code runs only to visualise a depth map; "
+    "no Gaussian depends on it, so inference needs none of it",
+}
 
 
 class CheckpointError(ValueError):
     pass
 
 
-def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
-    """The model's parameters from a checkpoint file, with the `encoder.` prefix removed."""
+def read_state_dict(path: str | Path, report: Callable[[str], object] | None = None) -> dict[str, torch.Tensor]:
+    """The model's parameters from a checkpoint file, with the `encoder.` prefix removed and the
+    `IGNORED` parts dropped; `report` is given one line for each part dropped (`ignored_parts`)."""
     ckpt = torch.load(Path(path), map_location="cpu", weights_only=True)
     state = ckpt.get("state_dict", ckpt) if isinstance(ckpt, dict) else None
     if not isinstance(state, dict):
@@ -29,7 +37,24 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     foreign = sorted(k for k in state if not k.startswith(PREFIX))
     if foreign:
         raise CheckpointError(f"{path}: keys without the '{PREFIX}' prefix of the official layout: {_listing(foreign)}")
-    return {k[len(PREFIX) :]: v for k, v in state.items() if not k[len(PREFIX) :].startswith(IGNORED_PREFIXES)}
+    stripped = {k[len(PREFIX) :]: v for k, v in state.items()}
+    if report is not None:
+        for line in ignored_parts(stripped):
+            report(line)
+    return {k: v for k, v in stripped.items() if not k.startswith(tuple(IGNORED))}
+
+
+def ignored_parts(state: dict[str, torch.Tensor]) -> list[str]:
+    """What of a state dict (without the prefix) is dropped, one line a part: its keys, their
+    parameters, and why."""
+    lines = []
+    for prefix, why in IGNORED.items():
+        keys = [k for k in state if k.startswith(prefix)]
+        if keys:
+            parameters = sum(state[k].numel() for k in keys)
+            count = f"{len(keys)} key{'s' if len(keys) != 1 else ''}"
+            lines.append(f"dropped {count} of {PREFIX}{prefix}* ({_parameters(parameters)}): {why}")
+    return lines
 
 
 def feature_dim_of(state: dict[str, torch.Tensor]) -> int:
@@ -81,6 +106,10 @@ def sha256(path: str | Path) -> str:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+def _parameters(count: int) -> str:
+    return f"{count / 1e6:.1f}M parameters" if count >= 100_000 else f"{count:,} parameter{'s' if count != 1 else ''}"
 
 
 def _listing(keys: list[str], limit: int = 20) -> str:

@@ -32,6 +32,7 @@ import json
 import sys
 import tempfile
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import onnx
@@ -351,13 +352,14 @@ def readable_by_all(package: Path) -> None:
         path.chmod(0o755 if path.is_dir() else 0o644)
 
 
-def build_model(cfg: C4GConfig, seed: int, checkpoint: Path | None) -> C4G:
+def build_model(cfg: C4GConfig, seed: int, checkpoint: Path | None, report: Callable[[str], object] | None = None) -> C4G:
     """The model the tool exports: seeded random weights, overwritten by the checkpoint when given
-    (so only what the checkpoint lacks, such as a feature stream, keeps its random weights)."""
+    (so only what the checkpoint lacks, such as a feature stream, keeps its random weights).
+    `report` hears what of the checkpoint is dropped (the official DPT head) and why."""
     model = C4G(cfg)
     random_init(model, seed=seed)
     if checkpoint is not None:
-        load_into(model, read_state_dict(checkpoint))
+        load_into(model, read_state_dict(checkpoint, report))
     return model.eval()
 
 
@@ -426,7 +428,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     try:
-        model = build_model(cfg, args.seed, args.checkpoint)
+        model = build_model(cfg, args.seed, args.checkpoint, report=lambda line: print(f"note: {line}", file=sys.stderr))
     except (CheckpointError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -4,7 +4,7 @@ import re
 
 import torch
 
-from c4g.model.checkpoint import PREFIX
+from c4g.model.checkpoint import PREFIX, ignored_parts, read_state_dict
 from c4g.model.config import OFFICIAL, OFFICIAL_SMALL
 from c4g.model.network import C4G
 from c4g.package import export
@@ -72,9 +72,34 @@ def test_shape_mismatch_is_named(official_small_dir, tmp_path, capsys):
     assert rc == 2 and "shape mismatch" in err and "gaussian_tokens: checkpoint (7, 128) vs model (256, 128)" in err
 
 
-def test_dpt_head_keys_are_accepted_and_ignored(official_small_dir, tmp_path, capsys):
+def test_dpt_head_keys_are_accepted_and_dropped_with_a_word(official_small_dir, tmp_path, capsys):
     ckpt = tampered(
         official_small_dir / "c4g_official_small.ckpt", tmp_path, lambda sd: sd.__setitem__("encoder.dpt_head.proj.weight", torch.zeros(4))
     )
-    rc, _ = run_export(ckpt, tmp_path, capsys)
+    rc, err = run_export(ckpt, tmp_path, capsys)
     assert rc == 0
+    assert "note: dropped 1 key of encoder.dpt_head.* (4 parameters): the DPT head" in err and "depth map" in err
+
+
+def test_the_reader_says_what_it_drops_and_why(tmp_path):
+    """The official checkpoint's DPT head (62 keys, 32.7M parameters) is dropped: the reader names
+    the part, counts its keys and parameters, and says why; the model's keys pass through."""
+    state = {
+        "encoder.gaussian_tokens": torch.zeros(2, 3),
+        "encoder.dpt_head.scratch.refinenet1.weight": torch.zeros(3, 4),
+        "encoder.dpt_head.head.0.bias": torch.zeros(5),
+    }
+    path = tmp_path / "official.ckpt"
+    torch.save({"state_dict": state}, path)
+    said = []
+    loaded = read_state_dict(path, report=said.append)
+    assert list(loaded) == ["gaussian_tokens"]
+    (line,) = said
+    assert line.startswith("dropped 2 keys of encoder.dpt_head.* (17 parameters): the DPT head")
+    assert "only to visualise a depth map" in line and "inference needs none of it" in line
+    assert list(read_state_dict(path)) == ["gaussian_tokens"]  # dropped the same, unasked
+    # The official size's count reads in millions; nothing to drop, nothing said.
+    with torch.device("meta"):
+        official = {f"dpt_head.w{k}": torch.empty(545_000) for k in range(60)}
+    assert ignored_parts(official)[0].startswith("dropped 60 keys of encoder.dpt_head.* (32.7M parameters)")
+    assert ignored_parts({"gaussian_tokens": torch.zeros(1)}) == []

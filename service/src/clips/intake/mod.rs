@@ -14,10 +14,12 @@
 //! | `media` | what an upload is, how to read it, what the source was, the timed frames, the clip id |
 //! | `limits` | the intake's limits on options, frame sizes, counts and durations |
 //! | `read` | an upload read into timed context frames |
+//! | [`kept`] | source frames kept small for fits: a second pass over the upload |
 //! | [`cameras`] | given cameras (a JSON list, COLMAP text, nerfstudio's `transforms.json`) |
 
 pub mod cameras;
 pub mod images;
+pub mod kept;
 mod limits;
 mod media;
 mod read;

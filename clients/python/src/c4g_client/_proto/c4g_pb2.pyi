@@ -134,7 +134,7 @@ class ClipRef(_message.Message):
     def __init__(self, clip_id: _Optional[str] = ...) -> None: ...
 
 class Clip(_message.Message):
-    __slots__ = ("clip_id", "model", "context_times", "source_frames", "source_width", "source_height", "duration", "state", "feature_bytes", "source_kind", "source_fps", "created", "source_warnings", "cameras")
+    __slots__ = ("clip_id", "model", "context_times", "source_frames", "source_width", "source_height", "duration", "state", "feature_bytes", "source_kind", "source_fps", "created", "source_warnings", "cameras", "fitted_json")
     CLIP_ID_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
     CONTEXT_TIMES_FIELD_NUMBER: _ClassVar[int]
@@ -149,6 +149,7 @@ class Clip(_message.Message):
     CREATED_FIELD_NUMBER: _ClassVar[int]
     SOURCE_WARNINGS_FIELD_NUMBER: _ClassVar[int]
     CAMERAS_FIELD_NUMBER: _ClassVar[int]
+    FITTED_JSON_FIELD_NUMBER: _ClassVar[int]
     clip_id: str
     model: str
     context_times: _containers.RepeatedScalarFieldContainer[float]
@@ -163,7 +164,8 @@ class Clip(_message.Message):
     created: bool
     source_warnings: _containers.RepeatedScalarFieldContainer[str]
     cameras: ClipCameras
-    def __init__(self, clip_id: _Optional[str] = ..., model: _Optional[str] = ..., context_times: _Optional[_Iterable[float]] = ..., source_frames: _Optional[int] = ..., source_width: _Optional[int] = ..., source_height: _Optional[int] = ..., duration: _Optional[float] = ..., state: _Optional[_Union[ClipState, str]] = ..., feature_bytes: _Optional[int] = ..., source_kind: _Optional[str] = ..., source_fps: _Optional[float] = ..., created: _Optional[bool] = ..., source_warnings: _Optional[_Iterable[str]] = ..., cameras: _Optional[_Union[ClipCameras, _Mapping]] = ...) -> None: ...
+    fitted_json: str
+    def __init__(self, clip_id: _Optional[str] = ..., model: _Optional[str] = ..., context_times: _Optional[_Iterable[float]] = ..., source_frames: _Optional[int] = ..., source_width: _Optional[int] = ..., source_height: _Optional[int] = ..., duration: _Optional[float] = ..., state: _Optional[_Union[ClipState, str]] = ..., feature_bytes: _Optional[int] = ..., source_kind: _Optional[str] = ..., source_fps: _Optional[float] = ..., created: _Optional[bool] = ..., source_warnings: _Optional[_Iterable[str]] = ..., cameras: _Optional[_Union[ClipCameras, _Mapping]] = ..., fitted_json: _Optional[str] = ...) -> None: ...
 
 class ClipCameras(_message.Message):
     __slots__ = ("format", "scale", "frames", "notes")
@@ -230,13 +232,14 @@ class GaussianSet(_message.Message):
     def __init__(self, count: _Optional[int] = ..., precision: _Optional[_Union[Precision, str]] = ..., means: _Optional[bytes] = ..., scales: _Optional[bytes] = ..., rotations: _Optional[bytes] = ..., opacities: _Optional[bytes] = ..., colors: _Optional[bytes] = ..., feature_width: _Optional[int] = ..., features: _Optional[bytes] = ...) -> None: ...
 
 class DecodeRequest(_message.Message):
-    __slots__ = ("clip_id", "times", "precision", "keyframes", "quality", "prune", "features")
+    __slots__ = ("clip_id", "times", "precision", "keyframes", "quality", "prune", "scene", "features")
     CLIP_ID_FIELD_NUMBER: _ClassVar[int]
     TIMES_FIELD_NUMBER: _ClassVar[int]
     PRECISION_FIELD_NUMBER: _ClassVar[int]
     KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
     QUALITY_FIELD_NUMBER: _ClassVar[int]
     PRUNE_FIELD_NUMBER: _ClassVar[int]
+    SCENE_FIELD_NUMBER: _ClassVar[int]
     FEATURES_FIELD_NUMBER: _ClassVar[int]
     clip_id: str
     times: _containers.RepeatedScalarFieldContainer[float]
@@ -244,8 +247,9 @@ class DecodeRequest(_message.Message):
     keyframes: Keyframes
     quality: Quality
     prune: Prune
+    scene: str
     features: bool
-    def __init__(self, clip_id: _Optional[str] = ..., times: _Optional[_Iterable[float]] = ..., precision: _Optional[_Union[Precision, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ..., features: _Optional[bool] = ...) -> None: ...
+    def __init__(self, clip_id: _Optional[str] = ..., times: _Optional[_Iterable[float]] = ..., precision: _Optional[_Union[Precision, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ..., scene: _Optional[str] = ..., features: _Optional[bool] = ...) -> None: ...
 
 class Prune(_message.Message):
     __slots__ = ("contribution_px", "opacity", "drop_queries")
@@ -280,20 +284,24 @@ class AdaptiveKeyframes(_message.Message):
     def __init__(self, tolerance: _Optional[float] = ..., color_tolerance: _Optional[float] = ..., max: _Optional[int] = ..., min_interval_s: _Optional[float] = ...) -> None: ...
 
 class DecodeResponse(_message.Message):
-    __slots__ = ("frames",)
+    __slots__ = ("frames", "scene")
     FRAMES_FIELD_NUMBER: _ClassVar[int]
+    SCENE_FIELD_NUMBER: _ClassVar[int]
     frames: _containers.RepeatedCompositeFieldContainer[GaussianFrame]
-    def __init__(self, frames: _Optional[_Iterable[_Union[GaussianFrame, _Mapping]]] = ...) -> None: ...
+    scene: str
+    def __init__(self, frames: _Optional[_Iterable[_Union[GaussianFrame, _Mapping]]] = ..., scene: _Optional[str] = ...) -> None: ...
 
 class GaussianFrame(_message.Message):
-    __slots__ = ("time", "gaussians", "c4gv")
+    __slots__ = ("time", "gaussians", "c4gv", "scene")
     TIME_FIELD_NUMBER: _ClassVar[int]
     GAUSSIANS_FIELD_NUMBER: _ClassVar[int]
     C4GV_FIELD_NUMBER: _ClassVar[int]
+    SCENE_FIELD_NUMBER: _ClassVar[int]
     time: float
     gaussians: GaussianSet
     c4gv: bytes
-    def __init__(self, time: _Optional[float] = ..., gaussians: _Optional[_Union[GaussianSet, _Mapping]] = ..., c4gv: _Optional[bytes] = ...) -> None: ...
+    scene: str
+    def __init__(self, time: _Optional[float] = ..., gaussians: _Optional[_Union[GaussianSet, _Mapping]] = ..., c4gv: _Optional[bytes] = ..., scene: _Optional[str] = ...) -> None: ...
 
 class CompactStream(_message.Message):
     __slots__ = ("position_error", "keyframe_interval")
@@ -304,7 +312,7 @@ class CompactStream(_message.Message):
     def __init__(self, position_error: _Optional[float] = ..., keyframe_interval: _Optional[int] = ...) -> None: ...
 
 class StreamGaussiansRequest(_message.Message):
-    __slots__ = ("clip_id", "start", "end", "step", "fps", "precision", "keyframes", "quality", "prune", "compact")
+    __slots__ = ("clip_id", "start", "end", "step", "fps", "precision", "keyframes", "quality", "prune", "compact", "scene")
     CLIP_ID_FIELD_NUMBER: _ClassVar[int]
     START_FIELD_NUMBER: _ClassVar[int]
     END_FIELD_NUMBER: _ClassVar[int]
@@ -315,6 +323,7 @@ class StreamGaussiansRequest(_message.Message):
     QUALITY_FIELD_NUMBER: _ClassVar[int]
     PRUNE_FIELD_NUMBER: _ClassVar[int]
     COMPACT_FIELD_NUMBER: _ClassVar[int]
+    SCENE_FIELD_NUMBER: _ClassVar[int]
     clip_id: str
     start: float
     end: float
@@ -325,7 +334,8 @@ class StreamGaussiansRequest(_message.Message):
     quality: Quality
     prune: Prune
     compact: CompactStream
-    def __init__(self, clip_id: _Optional[str] = ..., start: _Optional[float] = ..., end: _Optional[float] = ..., step: _Optional[float] = ..., fps: _Optional[float] = ..., precision: _Optional[_Union[Precision, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ..., compact: _Optional[_Union[CompactStream, _Mapping]] = ...) -> None: ...
+    scene: str
+    def __init__(self, clip_id: _Optional[str] = ..., start: _Optional[float] = ..., end: _Optional[float] = ..., step: _Optional[float] = ..., fps: _Optional[float] = ..., precision: _Optional[_Union[Precision, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ..., compact: _Optional[_Union[CompactStream, _Mapping]] = ..., scene: _Optional[str] = ...) -> None: ...
 
 class Intrinsics(_message.Message):
     __slots__ = ("fx", "fy", "cx", "cy")
@@ -360,7 +370,7 @@ class InputCamera(_message.Message):
     def __init__(self, at: _Optional[float] = ..., start: _Optional[float] = ..., end: _Optional[float] = ...) -> None: ...
 
 class RenderRequest(_message.Message):
-    __slots__ = ("clip_id", "time", "camera", "width", "height", "format", "background", "quality", "prune")
+    __slots__ = ("clip_id", "time", "camera", "width", "height", "format", "background", "quality", "prune", "scene")
     CLIP_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FIELD_NUMBER: _ClassVar[int]
@@ -370,6 +380,7 @@ class RenderRequest(_message.Message):
     BACKGROUND_FIELD_NUMBER: _ClassVar[int]
     QUALITY_FIELD_NUMBER: _ClassVar[int]
     PRUNE_FIELD_NUMBER: _ClassVar[int]
+    SCENE_FIELD_NUMBER: _ClassVar[int]
     clip_id: str
     time: float
     camera: Camera
@@ -379,10 +390,11 @@ class RenderRequest(_message.Message):
     background: _containers.RepeatedScalarFieldContainer[float]
     quality: Quality
     prune: Prune
-    def __init__(self, clip_id: _Optional[str] = ..., time: _Optional[float] = ..., camera: _Optional[_Union[Camera, _Mapping]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., background: _Optional[_Iterable[float]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ...) -> None: ...
+    scene: str
+    def __init__(self, clip_id: _Optional[str] = ..., time: _Optional[float] = ..., camera: _Optional[_Union[Camera, _Mapping]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., background: _Optional[_Iterable[float]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ..., scene: _Optional[str] = ...) -> None: ...
 
 class RenderTrajectoryRequest(_message.Message):
-    __slots__ = ("clip_id", "start", "end", "frames", "preset_json", "cameras", "width", "height", "format", "camera", "background", "keyframes", "quality", "prune")
+    __slots__ = ("clip_id", "start", "end", "frames", "preset_json", "cameras", "width", "height", "format", "camera", "background", "keyframes", "quality", "prune", "scene")
     CLIP_ID_FIELD_NUMBER: _ClassVar[int]
     START_FIELD_NUMBER: _ClassVar[int]
     END_FIELD_NUMBER: _ClassVar[int]
@@ -397,6 +409,7 @@ class RenderTrajectoryRequest(_message.Message):
     KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
     QUALITY_FIELD_NUMBER: _ClassVar[int]
     PRUNE_FIELD_NUMBER: _ClassVar[int]
+    SCENE_FIELD_NUMBER: _ClassVar[int]
     clip_id: str
     start: float
     end: float
@@ -411,23 +424,26 @@ class RenderTrajectoryRequest(_message.Message):
     keyframes: Keyframes
     quality: Quality
     prune: Prune
-    def __init__(self, clip_id: _Optional[str] = ..., start: _Optional[float] = ..., end: _Optional[float] = ..., frames: _Optional[int] = ..., preset_json: _Optional[str] = ..., cameras: _Optional[_Iterable[_Union[Camera, _Mapping]]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., camera: _Optional[_Union[Camera, _Mapping]] = ..., background: _Optional[_Iterable[float]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ...) -> None: ...
+    scene: str
+    def __init__(self, clip_id: _Optional[str] = ..., start: _Optional[float] = ..., end: _Optional[float] = ..., frames: _Optional[int] = ..., preset_json: _Optional[str] = ..., cameras: _Optional[_Iterable[_Union[Camera, _Mapping]]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., camera: _Optional[_Union[Camera, _Mapping]] = ..., background: _Optional[_Iterable[float]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., quality: _Optional[_Union[Quality, str]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ..., scene: _Optional[str] = ...) -> None: ...
 
 class RenderedImage(_message.Message):
-    __slots__ = ("time", "width", "height", "format", "data", "channels")
+    __slots__ = ("time", "width", "height", "format", "data", "channels", "scene")
     TIME_FIELD_NUMBER: _ClassVar[int]
     WIDTH_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
     FORMAT_FIELD_NUMBER: _ClassVar[int]
     DATA_FIELD_NUMBER: _ClassVar[int]
     CHANNELS_FIELD_NUMBER: _ClassVar[int]
+    SCENE_FIELD_NUMBER: _ClassVar[int]
     time: float
     width: int
     height: int
     format: ImageFormat
     data: bytes
     channels: int
-    def __init__(self, time: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., data: _Optional[bytes] = ..., channels: _Optional[int] = ...) -> None: ...
+    scene: str
+    def __init__(self, time: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., data: _Optional[bytes] = ..., channels: _Optional[int] = ..., scene: _Optional[str] = ...) -> None: ...
 
 class TracksRequest(_message.Message):
     __slots__ = ("clip_id", "queries", "times", "width", "height", "quality", "keyframes", "prune", "tracker")
