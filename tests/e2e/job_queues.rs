@@ -445,6 +445,36 @@ async fn jobs_belong_to_their_model() {
 /// A database that goes away answers `unavailable` (503 / UNAVAILABLE, retry) within the
 /// connect timeout, never hangs, and the store works again once it is back; a bad URL is refused
 /// at start with what is wrong.
+
+/// A database that is down when the store opens (containers start in any order) is no reason to
+/// stop: the store opens, answers `unavailable` until the database comes, then makes its tables
+/// and works.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_database_down_at_start_is_unavailable_until_it_comes() {
+    let Some(db) = TempPostgres::start() else {
+        return;
+    };
+    db.pause();
+    let jobs = PostgresJobs::connect(&db.url(), "model", LEASE, 2)
+        .await
+        .expect("opens without the database");
+    let down = jobs.create("clip", serde_json::json!({})).await.unwrap_err();
+    assert_eq!(down.kind(), ServiceErrorKind::Unavailable, "{down}");
+    assert!(down.to_string().contains("C4G_JOB_DATABASE"), "{down}");
+    db.resume();
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    let job = loop {
+        match jobs.create("clip", serde_json::json!({})).await {
+            Ok(job) => break job,
+            Err(e) => {
+                assert!(std::time::Instant::now() < deadline, "never came: {e}");
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+        }
+    };
+    assert_eq!(jobs.take("w", Duration::ZERO).await.unwrap().unwrap().id, job.id);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_database_outage_is_unavailable_and_passes() {
     let Some(db) = TempPostgres::start() else {

@@ -16,7 +16,9 @@
 //! - Jobs belong to the model they were made for (its key): replicas of another model, sharing
 //!   the database during an upgrade, neither list nor take them.
 //! - A database that cannot be reached is kind `unavailable` (503 / UNAVAILABLE, retry): the
-//!   request failed, nothing was changed.
+//!   request failed, nothing was changed. That holds from the start: a database that is down
+//!   when the server starts (containers start in any order) is logged, not fatal; the tables are
+//!   made by the first call that reaches it.
 //!
 //! Connections are plain TCP or a Unix socket (`?host=/run/postgresql`): TLS to the database is
 //! not built in; `docs/deploy.md` says how to keep that traffic private.
@@ -72,6 +74,9 @@ pub struct PostgresJobs {
     watched: Mutex<HashMap<String, watch::Sender<JobRecord>>>,
     /// Woken by every notification.
     changed: Notify,
+    /// Set once the tables are known to exist (made by the first call that reaches the
+    /// database).
+    schema: tokio::sync::OnceCell<()>,
 }
 
 /// A database failure: nothing was changed, and the client may retry.
@@ -123,15 +128,6 @@ impl PostgresJobs {
             })
             .build()
             .map_err(db)?;
-        {
-            let mut client = pool.get().await.map_err(db)?;
-            let tx = client.transaction().await.map_err(db)?;
-            tx.execute("SELECT pg_advisory_xact_lock($1)", &[&SCHEMA_LOCK])
-                .await
-                .map_err(db)?;
-            tx.batch_execute(SCHEMA).await.map_err(db)?;
-            tx.commit().await.map_err(db)?;
-        }
         let jobs = Arc::new(Self {
             pool,
             model: model.to_owned(),
@@ -139,9 +135,31 @@ impl PostgresJobs {
             max_attempts: max_attempts.max(1),
             watched: Mutex::new(HashMap::new()),
             changed: Notify::new(),
+            schema: tokio::sync::OnceCell::new(),
         });
+        if let Err(e) = jobs.client().await {
+            tracing::warn!("jobs answer unavailable until the job database can be reached: {e}");
+        }
         tokio::spawn(listen(Arc::downgrade(&jobs), config));
         Ok(jobs)
+    }
+
+    /// A pooled connection, the tables made first if this is the first call to reach the
+    /// database.
+    async fn client(&self) -> Result<deadpool_postgres::Object, ServiceError> {
+        let mut client = self.pool.get().await.map_err(db)?;
+        let made = self.schema.get_or_try_init(|| async {
+            let tx = client.transaction().await.map_err(db)?;
+            tx.execute("SELECT pg_advisory_xact_lock($1)", &[&SCHEMA_LOCK])
+                .await
+                .map_err(db)?;
+            tx.batch_execute(SCHEMA).await.map_err(db)?;
+            tx.commit().await.map_err(db)?;
+            tracing::info!("the job database is reachable");
+            Ok::<(), ServiceError>(())
+        });
+        made.await?;
+        Ok(client)
     }
 
     /// Locks job `id`, applies `change`, writes the row and notifies, in one transaction.
@@ -150,7 +168,7 @@ impl PostgresJobs {
         id: &str,
         change: impl FnOnce(&mut JobRecord) -> Result<Lease, ServiceError> + Send,
     ) -> Result<JobRecord, ServiceError> {
-        let mut client = self.pool.get().await.map_err(db)?;
+        let mut client = self.client().await?;
         let tx = client.transaction().await.map_err(db)?;
         let mut record = self.locked(&tx, id).await?;
         let lease = match change(&mut record) {
@@ -216,7 +234,7 @@ impl PostgresJobs {
 
     /// A queued job for `worker`, locked past other replicas' takers, now running.
     async fn take_one(&self, worker: &str) -> Result<Option<JobRecord>, ServiceError> {
-        let mut client = self.pool.get().await.map_err(db)?;
+        let mut client = self.client().await?;
         let tx = client.transaction().await.map_err(db)?;
         let Some(row) = tx
             .query_opt(
@@ -297,7 +315,7 @@ impl JobQueue for PostgresJobs {
     ) -> Result<JobRecord, ServiceError> {
         let record = JobRecord::new(clip_id, request, self.max_attempts);
         let json = serialise(&record)?;
-        let mut client = self.pool.get().await.map_err(db)?;
+        let mut client = self.client().await?;
         let tx = client.transaction().await.map_err(db)?;
         tx.execute(
             "INSERT INTO c4g_jobs (id, model, state, record) VALUES ($1, $2, $3, $4)",
@@ -313,7 +331,7 @@ impl JobQueue for PostgresJobs {
     }
 
     async fn get(&self, id: &str) -> Result<JobRecord, ServiceError> {
-        let client = self.pool.get().await.map_err(db)?;
+        let client = self.client().await?;
         let row = client
             .query_opt(
                 "SELECT record FROM c4g_jobs WHERE id = $1 AND model = $2",
@@ -326,7 +344,7 @@ impl JobQueue for PostgresJobs {
     }
 
     async fn list(&self) -> Result<Vec<JobRecord>, ServiceError> {
-        let client = self.pool.get().await.map_err(db)?;
+        let client = self.client().await?;
         let rows = client
             .query(
                 "SELECT record FROM c4g_jobs WHERE model = $1 ORDER BY seq",
@@ -338,7 +356,7 @@ impl JobQueue for PostgresJobs {
     }
 
     async fn queued(&self) -> Result<usize, ServiceError> {
-        let client = self.pool.get().await.map_err(db)?;
+        let client = self.client().await?;
         let row = client
             .query_one(
                 "SELECT count(*) FROM c4g_jobs WHERE state = 'queued' AND model = $1",
@@ -406,7 +424,7 @@ impl JobQueue for PostgresJobs {
         frames: Vec<Vec<u8>>,
         seconds: f64,
     ) -> Result<JobRecord, ServiceError> {
-        let mut client = self.pool.get().await.map_err(db)?;
+        let mut client = self.client().await?;
         let tx = client.transaction().await.map_err(db)?;
         let mut record = self.locked(&tx, id).await?;
         transitions::check_owner(&record, worker)?;
@@ -450,7 +468,7 @@ impl JobQueue for PostgresJobs {
     }
 
     async fn reap(&self) -> Result<usize, ServiceError> {
-        let mut client = self.pool.get().await.map_err(db)?;
+        let mut client = self.client().await?;
         let tx = client.transaction().await.map_err(db)?;
         let rows = tx
             .query(
@@ -473,7 +491,7 @@ impl JobQueue for PostgresJobs {
     async fn prune(&self, age: Duration) -> Result<usize, ServiceError> {
         let cutoff = i64::try_from(crate::clips::record::now().saturating_sub(age.as_secs()))
             .unwrap_or(i64::MAX);
-        let client = self.pool.get().await.map_err(db)?;
+        let client = self.client().await?;
         // The records' own clock (`updated_at`, Unix seconds), as on disk; frames go with their
         // job (ON DELETE CASCADE).
         let deleted = client
@@ -490,7 +508,7 @@ impl JobQueue for PostgresJobs {
 
     async fn result_frame(&self, id: &str, k: usize) -> Result<Vec<u8>, ServiceError> {
         let k = i32::try_from(k).map_err(|_| not_found(id))?;
-        let client = self.pool.get().await.map_err(db)?;
+        let client = self.client().await?;
         let row = client
             .query_opt(
                 "SELECT png FROM c4g_job_frames WHERE job_id = $1 AND frame = $2",
