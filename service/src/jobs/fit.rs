@@ -94,7 +94,8 @@ pub struct FitFrame {
     /// Its input camera: row-major 4×4 world-to-camera (OpenCV axes, the model's frame)...
     pub world_to_camera: Vec<f64>,
     /// ...and intrinsics `[fx, fy, cx, cy]` as fractions of the model's square centre crop of
-    /// the frame (the worker maps them onto the whole frame).
+    /// the frame (given cameras, which state fractions of the whole frame, are converted; the
+    /// worker maps them onto the whole frame at its working size).
     pub intrinsics: [f64; 4],
 }
 
@@ -179,11 +180,21 @@ pub async fn build_work(views: &Arc<Views>, job: &JobRecord) -> Result<FitWork, 
         })?;
         let camera = input_camera(cameras.as_ref(), times[k]);
         let i = camera.intrinsics;
+        let given = cameras.as_ref().is_some_and(|c| c.format != "recovered");
+        let intrinsics = if given {
+            crop_fractions(
+                [i.fx, i.fy, i.cx, i.cy],
+                record.source.width,
+                record.source.height,
+            )
+        } else {
+            [i.fx, i.fy, i.cx, i.cy]
+        };
         frames.push(FitFrame {
             time: times[k],
             png,
             world_to_camera: camera.world_to_camera,
-            intrinsics: [i.fx, i.fy, i.cx, i.cy],
+            intrinsics,
         });
     }
     let frame_times: Vec<f64> = frames.iter().map(|f| f.time).collect();
@@ -285,6 +296,20 @@ pub async fn complete(
         .await
 }
 
+/// Given cameras' intrinsics, fractions of the whole `width` × `height` frame (as uploads state
+/// them), as fractions of the model's square centre crop (as the model's own camera and recovered
+/// cameras are, and as a fit worker reads them).
+fn crop_fractions([fx, fy, cx, cy]: [f64; 4], width: u32, height: u32) -> [f64; 4] {
+    let (w, h) = (f64::from(width.max(1)), f64::from(height.max(1)));
+    let side = w.min(h);
+    [
+        fx * w / side,
+        fy * h / side,
+        (cx * w - (w - side) / 2.0) / side,
+        (cy * h - (h - side) / 2.0) / side,
+    ]
+}
+
 /// Frames the clip keeps for fits (its context frames when it keeps none).
 fn kept_count(record: &ClipRecord) -> usize {
     record
@@ -347,6 +372,17 @@ mod tests {
             ..Default::default()
         };
         assert!(huge.settings().is_err());
+    }
+
+    /// A camera of the whole frame and the same camera of its centre crop see one pixel alike.
+    #[test]
+    fn whole_frame_intrinsics_become_the_crops() {
+        // 200×100: the crop is the middle 100×100 (x from 50).
+        let [fx, fy, cx, cy] = crop_fractions([0.5, 1.0, 0.5, 0.5], 200, 100);
+        assert!((fx - 1.0).abs() < 1e-12 && (fy - 1.0).abs() < 1e-12);
+        assert!((cx - 0.5).abs() < 1e-12 && (cy - 0.5).abs() < 1e-12);
+        let [_, _, cx, _] = crop_fractions([0.5, 1.0, 0.3, 0.5], 200, 100);
+        assert!((cx - (60.0 - 50.0) / 100.0).abs() < 1e-12, "{cx}");
     }
 
     #[test]
