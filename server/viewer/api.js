@@ -74,6 +74,84 @@ export function postJson(path, body, signal) {
   });
 }
 
+/** GET `path` as a Blob (an image, say), with the key: an `<img src>` could not send it. */
+export async function getBlob(path, signal) {
+  return (await send(path, { method: 'GET', signal })).blob();
+}
+
+/** Job states after which nothing changes (docs/api.md, Jobs). */
+const TERMINAL = new Set(['done', 'failed', 'cancelled']);
+
+/** Whether job `record` has ended. */
+export function jobEnded(record) {
+  return TERMINAL.has(record.state);
+}
+
+/**
+ * Calls `onEvent(name, data)` for each server-sent event of GET `path` until the stream ends.
+ * Read with fetch, not EventSource: EventSource cannot send the API key. Lines end in `\n` or
+ * `\r\n`; a blank line ends an event; `:` lines (keep-alives) are comments.
+ */
+export async function serverEvents(path, onEvent, signal) {
+  const response = await send(path, { method: 'GET', headers: { Accept: 'text/event-stream' }, signal });
+  const reader = response.body.pipeThrough(new TextDecoderStream()).getReader();
+  let buffer = '';
+  let name = 'message';
+  let data = [];
+  for (;;) {
+    const { done, value } = await reader.read();
+    if (done) return;
+    buffer += value;
+    let end;
+    while ((end = buffer.indexOf('\n')) >= 0) {
+      const line = buffer.slice(0, end).replace(/\r$/, '');
+      buffer = buffer.slice(end + 1);
+      if (line === '') {
+        if (data.length) onEvent(name, data.join('\n'));
+        [name, data] = ['message', []];
+        continue;
+      }
+      if (line.startsWith(':')) continue;
+      const colon = line.indexOf(':');
+      const field = colon < 0 ? line : line.slice(0, colon);
+      const text = colon < 0 ? '' : line.slice(colon + 1).replace(/^ /, '');
+      if (field === 'event') name = text;
+      else if (field === 'data') data.push(text);
+    }
+  }
+}
+
+/**
+ * Follows job `id` (`GET /v1/jobs/{id}/events`), calling `onRecord(job)` with every record, until
+ * it ends; resolves with the last record. A stream that ends before the job does (a draining
+ * server ends its streams; the job goes on, perhaps on another replica) is followed again.
+ */
+export async function followJob(id, onRecord, signal) {
+  const path = `/v1/jobs/${encodeURIComponent(id)}/events`;
+  let last = null;
+  for (;;) {
+    try {
+      await serverEvents(
+        path,
+        (name, data) => {
+          if (name !== 'job') return;
+          last = JSON.parse(data);
+          onRecord(last);
+        },
+        signal,
+      );
+    } catch (error) {
+      // Unreachable or busy for a moment is worth waiting out; a refusal (404: the job is gone)
+      // is not.
+      const passing = !(error instanceof ApiError) || error.status === 503 || error.status === 429;
+      if (signal?.aborted || !passing) throw error;
+    }
+    if (last && jobEnded(last)) return last;
+    await new Promise((resolve) => setTimeout(resolve, 1000));
+    if (signal?.aborted) throw new Error('aborted');
+  }
+}
+
 /**
  * Uploads `files` as one clip: a single video or archive as the body, or image frames (PNG,
  * JPEG) as multipart `frame` parts in name order. `onProgress(sent, total)` follows the bytes;

@@ -11,6 +11,11 @@
 // frames before are fetched last, wrapping around. A server without the stream (404) gets the
 // older transport instead: `POST /v1/clips/{id}/gaussians`, a few times a request, in `C4GS`
 // (c4gs.js), which a page can also ask for by precision (`f16`, or `f32`: exact sets).
+//
+// Every request names the clip's scene (`"scene"`: auto, feed-forward or fitted). The first
+// answer's `X-C4G-Scene` says which one `auto` resolved to, and every later request of the source
+// asks for that one outright: a fit that finishes while the frames load must not mix fitted sets
+// into a feed-forward run.
 
 import { postJson, ApiError } from './api.js';
 import { decode } from './c4gs.js';
@@ -30,6 +35,8 @@ const RESTART_DELAY_MS = 120;
 const KEYFRAME_INTERVAL = 16;
 /** Stream: the default position error, scene units. */
 export const POSITION_ERROR = 1e-3;
+/** The header that names the scene that served an answer. */
+const SCENE_HEADER = 'X-C4G-Scene';
 
 /**
  * The times the viewer shows a clip at: its context span at the source's frame rate (both
@@ -52,10 +59,20 @@ export function frameTimes(clip) {
 export class FrameSource {
   /**
    * The sets of `clip` at `times`, of which the first `grid` are `1 / fps` apart. `precision`
-   * ('f16' or 'f32') asks for C4GS sets instead of the stream; `positionError` is the stream's.
+   * ('f16' or 'f32') asks for C4GS sets instead of the stream; `positionError` is the stream's;
+   * `scene` the clip's scene to ask for ('auto', 'feed-forward' or 'fitted').
    */
-  constructor(clip, times, { fps, grid = times.length, precision = null, positionError = POSITION_ERROR } = {}) {
+  constructor(
+    clip,
+    times,
+    { fps, grid = times.length, precision = null, positionError = POSITION_ERROR, scene = 'auto' } = {},
+  ) {
     this.clip = clip;
+    /** The scene asked for, and the one that served the sets (null until the first answer). */
+    this.scene = scene;
+    this.served = null;
+    /** Called with the served scene's name when the first answer names it. */
+    this.onscene = null;
     this.times = times;
     this.step = 1 / fps;
     this.grid = grid;
@@ -82,6 +99,27 @@ export class FrameSource {
     // C4GS: the indices asked for and the requests in flight.
     this.pending = new Set();
     this.inFlight = 0;
+  }
+
+  /**
+   * The request's `scene`: the one the first answer was served from, once known. A server that
+   * labels nothing (from before fitted scenes) is not sent the field unless one was picked.
+   */
+  sceneField() {
+    const scene = this.served || this.scene;
+    return scene === 'auto' ? {} : { scene };
+  }
+
+  /** Notes the scene `response` was served from; a change within one source is an error. */
+  noteScene(response) {
+    const label = response.headers.get(SCENE_HEADER);
+    if (!label) return;
+    if (this.served === null) {
+      this.served = label;
+      this.onscene?.(label);
+    } else if (label !== this.served) {
+      throw new Error(`the server answered from the ${label} scene after the ${this.served} one`);
+    }
   }
 
   /** What the sets come as, for the page's status line. */
@@ -232,9 +270,11 @@ export class FrameSource {
         step: this.step,
         position_error: this.positionError,
         keyframe_interval: KEYFRAME_INTERVAL,
+        ...this.sceneField(),
       },
       run.controller.signal,
     );
+    this.noteScene(response);
     const announced = response.headers.get('X-C4G-Sets');
     if (announced !== null && Number(announced) !== expected) {
       throw new Error(`the stream announces ${announced} sets from t = ${this.times[a]}; the viewer needs ${expected}`);
@@ -301,9 +341,10 @@ export class FrameSource {
     const times = indices.map((i) => this.times[i]);
     const response = await postJson(
       `/v1/clips/${encodeURIComponent(this.clip.id)}/gaussians`,
-      { times, format: 'binary', precision: this.precision },
+      { times, format: 'binary', precision: this.precision, ...this.sceneField() },
       this.abort.signal,
     );
+    this.noteScene(response);
     const buffer = await response.arrayBuffer();
     this.bytes += buffer.byteLength;
     const sets = decode(buffer);

@@ -1,7 +1,9 @@
-// The viewer page: pick or upload a clip, orbit about its scene, scrub or play its time, and
-// compare the WebGL view with the server's render of the same view. This module wires the page;
-// frames.js fetches the Gaussian sets, camera.js holds the camera, splats.js draws, compare.js
-// asks the server for the same view, api.js talks to the REST API.
+// The viewer page: pick or upload a clip, orbit about its scene, scrub or play its time, see the
+// input frame the scene was reconstructed from beside it, compare the WebGL view with the
+// server's render of the same view, fit the clip's scene to its own frames and switch between
+// the feed-forward and the fitted scene. This module wires the page; frames.js fetches the
+// Gaussian sets, camera.js holds the camera, splats.js draws, compare.js asks the server for the
+// same view and fetches the input frames, api.js talks to the REST API and follows jobs.
 //
 // URL: /viewer (the newest clip) or /viewer/{clip}; `?size=N` sets the square canvas's side in
 // pixels (default 512); `?position_error=E` the compact stream's position bound (default 1e-3
@@ -10,11 +12,11 @@
 //
 // `window.c4gViewer` lets a test (tests/browser/viewer.mjs) see what the page shows.
 
-import { apiKey, setApiKey, getJson, postJson, upload } from './api.js';
+import { apiKey, setApiKey, getJson, postJson, upload, followJob, jobEnded } from './api.js';
 import { FrameSource, frameTimes } from './frames.js';
 import { OrbitCamera, C4G_INTRINSICS } from './camera.js';
 import { SplatRenderer, NEAR } from './splats.js';
-import { renderRequest, serverImage, pixelsOf, psnr } from './compare.js';
+import { renderRequest, serverImage, pixelsOf, psnr, difference, nearest, InputFrames } from './compare.js';
 
 const params = new URLSearchParams(location.search);
 const SIZE = Math.min(2048, Math.max(16, Number.parseInt(params.get('size'), 10) || 512));
@@ -33,13 +35,24 @@ const ui = {
   serverFigure: $('server-figure'),
   serverCanvas: $('server-view'),
   serverCaption: $('server-caption'),
+  inputFigure: $('input-figure'),
+  inputView: $('input-view'),
+  inputCrop: $('input-crop'),
+  inputCaption: $('input-caption'),
   play: $('play'),
   time: $('time'),
   timeLabel: $('time-label'),
   mode: $('mode'),
   home: $('home'),
   compare: $('compare'),
-  overlay: $('overlay'),
+  difference: $('difference'),
+  scene: $('scene'),
+  sceneShown: $('scene-shown'),
+  fitPreset: $('fit-preset'),
+  fit: $('fit'),
+  fitCancel: $('fit-cancel'),
+  fitProgress: $('fit-progress'),
+  fitStatus: $('fit-status'),
   ply: $('download-ply'),
   splat: $('download-splat'),
   exports: ['ply_zip', 'spz_zip', 'splatv'].map((format) => [format, $(`download-${format}`)]),
@@ -60,6 +73,16 @@ const state = {
   draws: 0,
   shown: null,
   comparison: null,
+  // The two images of the last comparison and their amplified difference.
+  images: null,
+  // The input frame shown: {clip, index, t, loaded, width, height}, and the time it is shown for.
+  input: null,
+  inputFor: null,
+  inputFrames: null,
+  // The fit followed: {id, clip, record, stages, controller, error}.
+  fit: null,
+  // Fields a test adds to the Fit button's request (a tiny fit).
+  fitExtra: {},
   error: null,
   broken: false,
   played: [],
@@ -129,8 +152,24 @@ async function openClip(id, { url = null } = {}) {
   state.shown = null;
   state.playing = false;
   state.error = null;
+  state.comparison = null;
+  state.images = null;
+  state.inputFrames?.close();
+  state.inputFrames = null;
+  state.input = null;
+  state.inputFor = null;
+  // The fit goes on on the server; the page stops following it (and follows it again when the
+  // clip is opened again).
+  state.fit?.controller.abort();
+  state.fit = null;
   setControls(false);
+  showFitStatus('');
+  ui.fitProgress.hidden = true;
+  ui.fitCancel.hidden = true;
   ui.serverFigure.hidden = true;
+  ui.inputFigure.hidden = true;
+  ui.difference.disabled = true;
+  ui.sceneShown.value = '';
   showStatus(`opening ${id.slice(0, 12)}…`);
   const clip = await getJson(`/v1/clips/${encodeURIComponent(id)}`);
   if (opening !== state.opening) return;
@@ -141,16 +180,16 @@ async function openClip(id, { url = null } = {}) {
   state.clip = clip;
   state.times = times;
   state.fps = fps;
+  state.grid = grid;
   state.index = 0;
   ui.time.max = String(times.length - 1);
   ui.time.value = '0';
-  const source = new FrameSource(clip, times, { fps, grid, precision: PRECISION, positionError: POSITION_ERROR });
-  state.source = source;
-  source.onload = (i) => {
-    if (i === state.index) state.dirty = true;
-    updateStatus();
-  };
-  source.onerror = fail;
+  state.inputFrames = new InputFrames(clip.id);
+  ui.scene.value = 'auto';
+  setSceneOptions(clip);
+  showFitted(clip.fitted);
+  const source = openSets();
+  followActiveFit(clip.id).catch(() => {});
   const first = await source.want(0);
   if (opening !== state.opening) return;
   camera.home(sceneDepth(first));
@@ -158,9 +197,52 @@ async function openClip(id, { url = null } = {}) {
   updateStatus();
 }
 
+/**
+ * A frame source for the clip's sets in the scene picked, in place of the one before; the time
+ * and the camera stay. The canvas keeps the old scene's image until the new one's set arrives.
+ */
+function openSets() {
+  state.source?.close();
+  state.error = null;
+  const source = new FrameSource(state.clip, state.times, {
+    fps: state.fps,
+    grid: state.grid,
+    precision: PRECISION,
+    positionError: POSITION_ERROR,
+    scene: ui.scene.value,
+  });
+  state.source = source;
+  state.dirty = true;
+  ui.sceneShown.value = 'loading…';
+  source.onload = (i) => {
+    if (i === state.index) state.dirty = true;
+    updateStatus();
+  };
+  source.onerror = fail;
+  source.onscene = (served) => {
+    if (state.source === source) ui.sceneShown.value = `showing the ${served} scene`;
+  };
+  return source;
+}
+
+/** The scene picker for `clip`: fitted only when it has a fitted scene. */
+function setSceneOptions(clip) {
+  const fitted = [...ui.scene.options].find((o) => o.value === 'fitted');
+  fitted.disabled = !clip.fitted;
+  fitted.textContent = clip.fitted ? 'fitted' : 'fitted (none yet)';
+  if (ui.scene.value === 'fitted' && !clip.fitted) ui.scene.value = 'auto';
+}
+
+/** Shows the sets of the scene picked now. */
+async function changeScene() {
+  const source = openSets();
+  await source.want(state.index);
+}
+
 function setControls(enabled) {
   const exports = ui.exports.map(([, button]) => button);
-  for (const control of [ui.play, ui.time, ui.compare, ui.ply, ui.splat, ...exports]) control.disabled = !enabled;
+  for (const control of [ui.play, ui.time, ui.compare, ui.ply, ui.splat, ui.scene, ...exports]) control.disabled = !enabled;
+  ui.fit.disabled = !enabled || fitRunning();
   ui.play.textContent = state.playing ? 'Pause' : 'Play';
 }
 
@@ -197,11 +279,60 @@ function draw(set) {
     splats: drawn.splats,
     count: set.count,
     draw: state.draws,
+    // The scene the set came from (null from a server that does not say).
+    scene: state.source.served,
   };
   const t = state.times[state.index];
   ui.timeLabel.value = `t = ${t.toFixed(3)} s (${state.index + 1}/${state.times.length})`;
+  showInput(t);
   markStaleComparison();
   updateStatus();
+}
+
+/**
+ * The clip's context frame nearest time `t` beside the canvas, at its height: what the model
+ * reconstructed the scene from (a fit also trains on the source frames between them). The square
+ * centre crop the model sees, which the first camera's view shows, is outlined on a frame that is
+ * not square.
+ */
+function showInput(t) {
+  const clip = state.clip;
+  const k = nearest(clip.context_times, t);
+  const tk = clip.context_times[k];
+  const near = Math.abs(tk - t) < 1e-9 ? '' : `, the nearest to ${t.toFixed(3)} s`;
+  const square = clip.source.width === clip.source.height;
+  ui.inputCaption.textContent =
+    `input: context frame ${k + 1} of ${clip.context_times.length}, t = ${tk.toFixed(3)} s${near}` +
+    (square ? '' : '; dashed: the square the model sees');
+  state.inputFor = t;
+  if (state.input?.clip === clip.id && state.input.index === k) return;
+  const shown = { clip: clip.id, index: k, t: tk, loaded: false, width: 0, height: 0 };
+  state.input = shown;
+  state.inputFrames
+    .url(k)
+    .then(async (url) => {
+      if (state.input !== shown) return;
+      ui.inputView.src = url;
+      await ui.inputView.decode();
+      if (state.input !== shown) return;
+      const [w, h] = [ui.inputView.naturalWidth, ui.inputView.naturalHeight];
+      Object.assign(shown, { loaded: true, width: w, height: h });
+      ui.inputView.style.height = `${SIZE}px`;
+      ui.inputView.style.width = `${Math.round((SIZE * w) / h)}px`;
+      const side = Math.min(w, h);
+      ui.inputCrop.hidden = w === h;
+      Object.assign(ui.inputCrop.style, {
+        left: `${(50 * (w - side)) / w}%`,
+        top: `${(50 * (h - side)) / h}%`,
+        width: `${(100 * side) / w}%`,
+        height: `${(100 * side) / h}%`,
+      });
+      ui.inputFigure.hidden = false;
+    })
+    .catch((error) => {
+      if (state.input !== shown) return;
+      ui.inputCaption.textContent = `input: context frame ${k + 1} could not be fetched (${error.message || error})`;
+    });
 }
 
 function tick(now) {
@@ -239,6 +370,8 @@ function currentRequest() {
     width: SIZE,
     height: SIZE,
     mode: shown.mode,
+    // The scene the canvas shows, by name: auto could be another one by now.
+    scene: shown.scene,
   });
 }
 
@@ -252,13 +385,21 @@ async function compare() {
   ui.serverCaption.textContent = 'rendering on the server…';
   try {
     const theirs = await serverImage(state.clip.id, request, shown.mode, shown.depthRange);
-    ui.serverCanvas.width = SIZE;
-    ui.serverCanvas.height = SIZE;
-    ui.serverCanvas.getContext('2d').putImageData(theirs, 0, 0);
-    ui.serverFigure.hidden = false;
     const db = psnr(mine, theirs);
-    state.comparison = { t: shown.t, mode: shown.mode, draw: shown.draw, psnr: db, request };
-    markStaleComparison();
+    const diff = difference(mine, theirs);
+    state.images = { theirs, difference: diff.image };
+    state.comparison = {
+      t: shown.t,
+      mode: shown.mode,
+      scene: shown.scene,
+      draw: shown.draw,
+      psnr: db,
+      request,
+      difference: { gain: diff.gain, largest: diff.largest, quantile: diff.quantile },
+    };
+    ui.difference.disabled = false;
+    paintComparison();
+    ui.serverFigure.hidden = false;
   } catch (error) {
     ui.serverCaption.textContent = 'the server could not render this view';
     fail(error);
@@ -267,20 +408,54 @@ async function compare() {
   }
 }
 
+/** The server's image of the last comparison, or its difference from this browser's. */
+function paintComparison() {
+  if (!state.images) return;
+  ui.serverCanvas.width = SIZE;
+  ui.serverCanvas.height = SIZE;
+  const image = ui.difference.checked ? state.images.difference : state.images.theirs;
+  ui.serverCanvas.getContext('2d').putImageData(image, 0, 0);
+  markStaleComparison();
+}
+
+/**
+ * The comparison's caption. Both images are renders of the same Gaussians, so their PSNR says
+ * how alike the two renderers draw (about 60 dB: a few levels apart at most), not how well the
+ * scene reconstructs the clip; the caption says so, since a newcomer reads a PSNR as quality.
+ */
 function markStaleComparison() {
   const c = state.comparison;
   if (!c) return;
   const same = state.shown && state.shown.draw === c.draw;
-  const db = Number.isFinite(c.psnr) ? `${c.psnr.toFixed(1)} dB` : 'identical';
-  ui.serverCaption.textContent =
-    `server (${state.rasterizer} rasterizer), ${c.mode} at t = ${c.t.toFixed(3)} s: PSNR ${db} against this view` +
-    (same ? '' : ' as it was (press Compare again)');
+  const mode = { color: 'colour', depth: 'depth', alpha: 'alpha' }[c.mode];
+  const what = `${mode} at t = ${c.t.toFixed(3)} s` + (c.scene ? `, ${c.scene} scene` : '');
+  const { gain, largest } = c.difference;
+  let caption;
+  if (ui.difference.checked) {
+    caption =
+      largest === 0
+        ? `|this browser − server|, ${what}: none, the two renders are identical`
+        : `|this browser − server| × ${gain}, ${what}: black where they agree; ` +
+          `the largest difference is ${largest} of 255 levels`;
+  } else {
+    const db = Number.isFinite(c.psnr) ? `PSNR ${c.psnr.toFixed(1)} dB` : 'identical images';
+    caption =
+      `server (${state.rasterizer} rasterizer), ${what}. This browser's renderer against the server's, ` +
+      `same Gaussians: ${db} (how alike the renderers draw, not reconstruction quality)`;
+  }
+  ui.serverCaption.textContent = caption + (same ? '' : ' (of the view as it was: press Compare again)');
+}
+
+/** The request field that asks for the scene the canvas shows (none before one is known). */
+function sceneShown() {
+  const scene = state.source?.served;
+  return scene ? { scene } : {};
 }
 
 async function download(format) {
   const t = state.times[state.index];
   const id = state.clip.id;
-  const response = await postJson(`/v1/clips/${encodeURIComponent(id)}/gaussians`, { t, format });
+  const response = await postJson(`/v1/clips/${encodeURIComponent(id)}/gaussians`, { t, format, ...sceneShown() });
   const link = document.createElement('a');
   link.href = URL.createObjectURL(await response.blob());
   link.download = `${id.slice(0, 12)}-t${t.toFixed(3)}.${format}`;
@@ -295,7 +470,7 @@ async function downloadExport(format, button) {
   button.disabled = true;
   showStatus(`exporting the clip as ${format}…`);
   try {
-    const response = await postJson(`/v1/clips/${encodeURIComponent(id)}/export`, { format, fps });
+    const response = await postJson(`/v1/clips/${encodeURIComponent(id)}/export`, { format, fps, ...sceneShown() });
     const sets = response.headers.get('X-C4G-Sets');
     const fit = response.headers.get('X-C4G-Fit-Position-Error');
     const link = document.createElement('a');
@@ -307,6 +482,157 @@ async function downloadExport(format, button) {
   } finally {
     button.disabled = false;
   }
+}
+
+// ------------------------------------------------------------------------------------------
+// Fitting: `POST /v1/clips/{id}/fit` queues a job that a c4g-fitter worker runs; the page follows
+// its events and, when it is done, shows the fitted scene and what the fit reports.
+
+function fitRunning() {
+  return Boolean(state.fit && !state.fit.error && !jobEnded(state.fit.record));
+}
+
+function showFitStatus(text, isError = false) {
+  ui.fitStatus.textContent = text;
+  ui.fitStatus.classList.toggle('error', isError);
+}
+
+/** Seconds as the fit's status says them. */
+function duration(seconds) {
+  if (seconds < 60) return `${seconds.toFixed(1)} s`;
+  return `${Math.floor(seconds / 60)} min ${Math.round(seconds % 60)} s`;
+}
+
+/** What the clip's fitted scene is and how it scores, or nothing when it has none. */
+function showFitted(fitted) {
+  if (!fitted) {
+    showFitStatus('');
+    return;
+  }
+  const dB = (v) => `${v.toFixed(1)} dB`;
+  const held = fitted.holdout_frames.length;
+  const score =
+    fitted.holdout_psnr !== null && held > 0
+      ? `held-out PSNR ${dB(fitted.holdout_psnr)} fitted against ${dB(fitted.holdout_psnr_feed_forward)} ` +
+        `feed-forward, on ${held} source frame${held === 1 ? '' : 's'} the fit never trained on`
+      : 'no frames held out' + (fitted.train_psnr !== null ? ` (PSNR ${dB(fitted.train_psnr)} on its training frames)` : '');
+  showFitStatus(
+    `Fitted scene (${fitted.preset}): ${fitted.steps} steps on ${fitted.frames} source frames in ` +
+      `${duration(fitted.seconds)}; ${fitted.gaussians.toLocaleString('en')} Gaussians ` +
+      `(${fitted.static_gaussians.toLocaleString('en')} static) at ${fitted.keyframes.length} keyframes; ${score}.`,
+  );
+}
+
+/** A fit job's record as the progress bar and a line of text. */
+function showFitJob(job) {
+  const p = job.progress || {};
+  const ended = jobEnded(job);
+  ui.fitProgress.hidden = ended;
+  ui.fitCancel.hidden = ended;
+  ui.fitCancel.disabled = job.cancel_requested;
+  ui.fit.disabled = !ended || !state.source;
+  if (p.steps) ui.fitProgress.value = p.step / p.steps;
+  else ui.fitProgress.removeAttribute('value');
+  if (job.state === 'failed') {
+    showFitStatus(`The fit failed: ${job.error || 'no reason given'}`, true);
+    return;
+  }
+  if (job.state === 'cancelled') {
+    showFitStatus("The fit was cancelled: the clip's scenes are as they were.");
+    return;
+  }
+  if (job.state === 'done') return;
+  const parts = [];
+  if (job.state === 'queued') {
+    parts.push('Fit queued: waiting for a c4g-fitter worker');
+    if (job.attempt > 1) parts.push(`attempt ${job.attempt} of ${job.max_attempts}`);
+  } else if (p.stage === 'fitting') {
+    parts.push(`Fitting: step ${p.step} of ${p.steps}`);
+    if (p.loss !== undefined) parts.push(`loss ${p.loss.toFixed(4)}`);
+    if (p.holdout_psnr !== undefined) parts.push(`held-out PSNR ${p.holdout_psnr.toFixed(1)} dB`);
+    if (p.gaussians !== undefined) parts.push(`${p.gaussians.toLocaleString('en')} Gaussians`);
+  } else if (p.stage === 'storing') {
+    parts.push('Fit: storing the fitted scene');
+  } else {
+    parts.push("Fit: preparing (reading the clip's frames)");
+  }
+  if (p.elapsed_s !== undefined) parts.push(duration(p.elapsed_s));
+  if (job.cancel_requested) parts.push('cancelling…');
+  showFitStatus(parts.join(' · '));
+}
+
+/** Follows fit job `job` until it ends; a done fit's scene is then shown. */
+function followFit(job) {
+  state.fit?.controller.abort();
+  const fit = { id: job.id, clip: job.clip_id, record: job, stages: [], controller: new AbortController(), error: null };
+  state.fit = fit;
+  const seen = (record) => {
+    if (state.fit !== fit) return;
+    fit.record = record;
+    const stage = record.state === 'running' ? record.progress?.stage || 'running' : record.state;
+    if (fit.stages.at(-1) !== stage) fit.stages.push(stage);
+    showFitJob(record);
+  };
+  seen(job);
+  followJob(job.id, seen, fit.controller.signal)
+    .then((record) => {
+      // A failure from here on is the page's (reading the clip, loading the sets), not the fit's.
+      if (record.state === 'done' && state.fit === fit) fitDone(fit).catch(fail);
+    })
+    .catch((error) => {
+      if (state.fit !== fit || fit.controller.signal.aborted) return;
+      fit.error = error.message || String(error);
+      ui.fit.disabled = false;
+      ui.fitCancel.hidden = true;
+      ui.fitProgress.hidden = true;
+      showFitStatus(`Lost the fit's progress: ${fit.error}`, true);
+    });
+}
+
+/** The fit is done: the clip's record now lists its fitted scene, which the canvas switches to. */
+async function fitDone(fit) {
+  const clip = await getJson(`/v1/clips/${encodeURIComponent(fit.clip)}`);
+  if (state.fit !== fit || state.clip?.id !== fit.clip) return;
+  state.clip = clip;
+  setSceneOptions(clip);
+  showFitted(clip.fitted);
+  ui.scene.value = 'fitted';
+  await changeScene();
+}
+
+async function startFit() {
+  if (!state.clip || fitRunning()) return;
+  ui.fit.disabled = true;
+  showFitStatus('Fit: asking the server…');
+  try {
+    const id = state.clip.id;
+    const body = { preset: ui.fitPreset.value, ...state.fitExtra };
+    const job = await (await postJson(`/v1/clips/${encodeURIComponent(id)}/fit`, body)).json();
+    if (state.clip?.id === id) followFit(job);
+  } catch (error) {
+    ui.fit.disabled = false;
+    showFitStatus(`The server did not take the fit: ${error.message || error}`, true);
+  }
+}
+
+async function cancelFit() {
+  const fit = state.fit;
+  if (!fit) return;
+  ui.fitCancel.disabled = true;
+  try {
+    // The events then say when it stopped.
+    await postJson(`/v1/jobs/${encodeURIComponent(fit.id)}/cancel`, {});
+  } catch (error) {
+    ui.fitCancel.disabled = false;
+    showFitStatus(`The fit could not be cancelled: ${error.message || error}`, true);
+  }
+}
+
+/** Follows the clip's fit that is queued or running (started earlier, or by someone else). */
+async function followActiveFit(clipId) {
+  const { jobs } = await getJson('/v1/jobs');
+  const active = jobs.filter((j) => j.kind === 'fit' && j.clip_id === clipId && !jobEnded(j)).at(-1);
+  if (active && state.clip?.id === clipId && !state.fit) followFit(active);
 }
 
 async function uploadFiles(files) {
@@ -360,7 +686,10 @@ function wire() {
     camera.home(first ? sceneDepth(first) : camera.homeDepth);
   });
   ui.compare.addEventListener('click', () => compare());
-  ui.overlay.addEventListener('change', () => ui.stage.classList.toggle('overlay', ui.overlay.checked));
+  ui.difference.addEventListener('change', () => paintComparison());
+  ui.scene.addEventListener('change', () => changeScene().catch(fail));
+  ui.fit.addEventListener('click', () => startFit());
+  ui.fitCancel.addEventListener('click', () => cancelFit());
   ui.ply.addEventListener('click', () => download('ply').catch(fail));
   ui.splat.addEventListener('click', () => download('splat').catch(fail));
   for (const [format, button] of ui.exports) {
@@ -416,6 +745,35 @@ window.c4gViewer = {
   }),
   /** The render request for the view on the canvas (colour: PNG). */
   request: () => currentRequest(),
+  /** The scene picked, the one the canvas's sets came from, and whether the clip has a fitted one. */
+  scene: () => ({
+    picked: ui.scene.value,
+    served: state.source?.served || null,
+    fitted: Boolean(state.clip?.fitted),
+    fittedEnabled: !ui.scene.querySelector('option[value="fitted"]').disabled,
+    text: ui.sceneShown.value,
+  }),
+  /** The fit followed: its job, state, the stages seen, the status line; and the input frame. */
+  fit: () =>
+    state.fit && {
+      id: state.fit.id,
+      state: state.fit.record.state,
+      progress: state.fit.record.progress,
+      stages: state.fit.stages,
+      error: state.fit.error,
+      text: ui.fitStatus.textContent,
+    },
+  /** The input frame beside the canvas, and the time it is shown for. */
+  input: () => ({
+    ...state.input,
+    at: state.inputFor,
+    shown: !ui.inputFigure.hidden,
+    caption: ui.inputCaption.textContent,
+  }),
+  /** Fields the Fit button adds to its request (a test's tiny fit). */
+  fitOptions: (extra) => {
+    state.fitExtra = { ...extra };
+  },
 };
 
 try {

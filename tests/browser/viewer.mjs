@@ -2,7 +2,7 @@
 // moving clip, runs this script and judges what it writes (PSNR against the server's renders).
 //
 //   node viewer.mjs --base http://127.0.0.1:PORT --clip ID --static-frame frame.png --out DIR
-//                   [--size 256] [--chromium /usr/bin/chromium]
+//                   [--size 256] [--chromium /usr/bin/chromium] [--fit 1]
 //
 // In DIR: moving-0.png, moving-1.png, moving-2.png (the canvas at three times, the last from an
 // orbited camera, with sets from the compact stream at a fine bound, `?position_error=1e-4`),
@@ -15,6 +15,16 @@
 // each screenshot the render request of the view it shows (time, camera, size), the PSNR the
 // page's own "Compare with server" reported in each view mode, the frames playing showed, and
 // for each page where its sets came from (`frames`: kind, bytes received, sets loaded).
+//
+// Also: input-0.png, input-1.png, input-2.png (the input frame shown beside the canvas at each of
+// the moving clip's three views, as the page has it) with what the page says of it (`input`);
+// compare-view.png and difference.png (the canvas at the last colour comparison, and the page's
+// "show the difference" image of it) with the gain it states (`difference`); and, when given
+// `--fit 1` (a c4g-fitter worker serves the server), the page's own fits of the moving clip: a
+// long one followed until it reports steps and then cancelled, a tiny one to the end, after which
+// the page shows the fitted scene, then the feed-forward one, then the fitted one again, with a
+// screenshot and the render request of each (fitted.png, feed-forward.png, fitted-again.png) and
+// what the page said (`fit`).
 
 import { chromium } from 'playwright-core';
 import { mkdir, readFile, writeFile } from 'node:fs/promises';
@@ -146,6 +156,125 @@ async function shoot(page, file) {
   return path.basename(file);
 }
 
+/**
+ * The input frame beside the canvas once it is the one for the time shown, drawn at its own size
+ * into `file` (PNG): what the page says of it (`c4gViewer.input()`), with the file's name.
+ */
+async function inputFrame(page, file) {
+  await page.waitForFunction(
+    () => {
+      const [s, input] = [window.c4gViewer.state(), window.c4gViewer.input()];
+      return s.error || (input.loaded && input.shown && input.clip === s.clip && input.at === s.shown.t);
+    },
+    null,
+    { timeout: TIMEOUT_MS, polling: 50 },
+  );
+  const { input, url } = await page.evaluate(() => {
+    const image = document.getElementById('input-view');
+    const canvas = document.createElement('canvas');
+    [canvas.width, canvas.height] = [image.naturalWidth, image.naturalHeight];
+    canvas.getContext('2d').drawImage(image, 0, 0);
+    return { input: window.c4gViewer.input(), url: canvas.toDataURL('image/png') };
+  });
+  await writeFile(file, Buffer.from(url.slice(url.indexOf(',') + 1), 'base64'));
+  return { ...input, file: path.basename(file) };
+}
+
+/**
+ * After a colour comparison: the canvas as compared (compare-view.png), then "show the
+ * difference" ticked and the image it shows (difference.png) with its caption and the gain the
+ * page chose; unticked again.
+ */
+async function differenceShown(page, out) {
+  const view = await shoot(page, path.join(out, 'compare-view.png'));
+  await page.check('#difference');
+  const url = await page.evaluate(() => document.getElementById('server-view').toDataURL('image/png'));
+  await writeFile(path.join(out, 'difference.png'), Buffer.from(url.slice(url.indexOf(',') + 1), 'base64'));
+  const s = await viewerState(page);
+  const caption = await page.locator('#server-caption').textContent();
+  await page.uncheck('#difference');
+  const plain = await page.locator('#server-caption').textContent();
+  return { view, file: 'difference.png', request: s.comparison.request, ...s.comparison.difference, caption, plain };
+}
+
+/** Waits until the page shows the `scene` scene's set at frame `index`, drawn. */
+async function sceneShown(page, index, scene) {
+  await page.waitForFunction(
+    ([i, scene]) => {
+      const s = window.c4gViewer.state();
+      return s.error || (!s.dirty && s.shown.index === i && s.shown.scene === scene);
+    },
+    [index, scene],
+    { timeout: TIMEOUT_MS, polling: 50 },
+  );
+  return settled(page, index, null);
+}
+
+/**
+ * Waits until the page's fit is at `stage` ('fitting': reporting steps, or an end state:
+ * 'cancelled', 'done'); what the page says of it.
+ */
+async function fitReached(page, stage) {
+  await page.waitForFunction(
+    (stage) => {
+      const fit = window.c4gViewer.fit();
+      if (window.c4gViewer.state().error || fit?.error) return true;
+      return fit && (fit.state === stage || (fit.state === 'running' && fit.progress?.stage === stage));
+    },
+    stage,
+    { timeout: TIMEOUT_MS, polling: 50 },
+  );
+  const [s, fit] = await page.evaluate(() => [window.c4gViewer.state(), window.c4gViewer.fit()]);
+  if (s.error) throw new Error(`the viewer reports: ${s.error}`);
+  if (fit.error) throw new Error(`the page lost the fit: ${fit.error}`);
+  return fit;
+}
+
+/**
+ * The page's own fits of `clip` with its Fit button: a long one, followed until its status
+ * reports steps, then cancelled with its Cancel button (the clip still has no fitted scene); then
+ * a tiny one, to the end, after which the page shows the fitted scene; then the scene picker to
+ * feed-forward and back to fitted, a screenshot and render request of each.
+ */
+async function fits(page, base, clip, size, out) {
+  await page.goto(`${base}/viewer/${clip}?size=${size}`);
+  let s = await settled(page, 0, clip);
+  const last = s.times.length - 1;
+  await scrub(page, last);
+  await settled(page, last, clip);
+  const result = { before: await page.evaluate(() => window.c4gViewer.scene()) };
+
+  const tiny = { resolution: 32, max_frames: 8 };
+  await page.evaluate((o) => window.c4gViewer.fitOptions(o), { ...tiny, steps: 100000 });
+  await page.click('#fit');
+  const running = await fitReached(page, 'fitting');
+  result.running = { ...running, cancelVisible: await page.locator('#fit-cancel').isVisible() };
+  await page.click('#fit-cancel');
+  result.cancelled = await fitReached(page, 'cancelled');
+  result.afterCancel = await page.evaluate(() => window.c4gViewer.scene());
+
+  await page.evaluate((o) => window.c4gViewer.fitOptions(o), { ...tiny, steps: 6 });
+  await page.click('#fit');
+  result.done = await fitReached(page, 'done');
+  result.views = [];
+  for (const [name, scene] of [
+    ['fitted', 'fitted'],
+    ['feed-forward', 'feed-forward'],
+    ['fitted-again', 'fitted'],
+  ]) {
+    if (name !== 'fitted') await page.selectOption('#scene', scene);
+    s = await sceneShown(page, last, scene);
+    result.views.push({
+      name,
+      t: s.times[last],
+      scene: await page.evaluate(() => window.c4gViewer.scene()),
+      screenshot: await shoot(page, path.join(out, `${name}.png`)),
+      request: await page.evaluate(() => window.c4gViewer.request()),
+    });
+  }
+  return result;
+}
+
 /** Clicks "Compare with server" in `mode`; the PSNR the page reports. */
 async function compareIn(page, mode) {
   await page.selectOption('#mode', mode);
@@ -229,10 +358,12 @@ async function main() {
       s = await settled(page, index, a.clip);
       const request = await page.evaluate(() => window.c4gViewer.request());
       const file = await shoot(page, path.join(a.out, `moving-${k}.png`));
-      result.moving.push({ index, t: s.times[index], screenshot: file, request });
+      const input = await inputFrame(page, path.join(a.out, `input-${k}.png`));
+      result.moving.push({ index, t: s.times[index], screenshot: file, request, input });
     }
     for (const mode of ['color', 'depth', 'alpha']) result.compare[mode] = await compareIn(page, mode);
     result.compare.color = await compareIn(page, 'color');
+    result.difference = await differenceShown(page, a.out);
     // The page as it looks then (for docs/viewer/): the WebGL view beside the server's.
     const bottom = await page.locator('#status').evaluate((e) => e.getBoundingClientRect().bottom);
     const clip = { x: 0, y: 0, width: 800, height: Math.ceil(bottom) + 8 };
@@ -282,6 +413,7 @@ async function main() {
       const file = await shoot(page, path.join(a.out, `static-${k}.png`));
       result.static.push({ index, t: s.times[index], screenshot: file });
     }
+    if (a.fit === '1') result.fit = await fits(page, a.base, a.clip, a.size, a.out);
   } finally {
     await browser.close();
   }

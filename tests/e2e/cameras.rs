@@ -10,8 +10,8 @@
 use std::path::PathBuf;
 
 use c4g_e2e::{
-    Server, binary, expect_invalid, frames_form, json_of, ort_available, post_upload,
-    synthetic_clip,
+    Server, binary, expect_error, expect_invalid, frames_form, json_of, ort_available, post_upload,
+    synthetic_clip, upload_synthetic,
 };
 use c4g_proto::v1 as pb;
 use c4g_proto::v1::c4g_client::C4gClient;
@@ -651,4 +651,94 @@ fn given_cameras_are_fitted_to_the_model_depth_scale_and_held_out_views_match_be
         eprintln!("{name}: factor {factor:.3}, held-out PSNR {unfitted:.2} -> {fitted:.2} dB");
         assert!(fitted > unfitted, "{name}: {unfitted:.2} -> {fitted:.2} dB");
     }
+}
+
+/// Cameras go out as they came in: the clip's cameras as the JSON list, COLMAP's text model and
+/// transforms.json read back, with the upload's own readers, as the stored cameras (1e-9: full
+/// precision in every file); a clip without cameras is 404 and an unknown format 400.
+#[test]
+fn a_clips_cameras_go_out_in_every_form_and_read_back_as_stored() {
+    use c4g_service::clips::intake::cameras::CameraInput;
+    if !ort_available() {
+        return;
+    }
+    let server = Server::start(&[]);
+    let (cameras, images) = colmap(7);
+    let clip = json_of(upload(&server, &cameras, &images));
+    let id = clip["id"].as_str().unwrap().to_owned();
+    let stored: Vec<Vec<f64>> = clip["cameras"]["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| {
+            let k = &f["intrinsics"];
+            let mut v: Vec<f64> = f["world_to_camera"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_f64().unwrap())
+                .collect();
+            v.extend(["fx", "fy", "cx", "cy"].map(|n| k[n].as_f64().unwrap()));
+            v
+        })
+        .collect();
+    let names: Vec<String> = (0..stored.len()).map(|k| format!("{k:03}.png")).collect();
+    let get = |format: &str| {
+        Client::new()
+            .get(server.at(&format!("/v1/clips/{id}/cameras?format={format}")))
+            .send()
+            .unwrap()
+    };
+    for format in ["json", "colmap", "transforms"] {
+        let response = get(format);
+        assert_eq!(response.status(), 200, "{format}");
+        let bytes = response.bytes().unwrap();
+        let input = match format {
+            "json" => CameraInput::Json(String::from_utf8(bytes.to_vec()).unwrap()),
+            "transforms" => CameraInput::Transforms {
+                json: String::from_utf8(bytes.to_vec()).unwrap(),
+                names: Some(names.clone()),
+            },
+            _ => {
+                let mut zip = zip::ZipArchive::new(std::io::Cursor::new(bytes.to_vec())).unwrap();
+                let mut read = |name: &str| {
+                    let mut text = String::new();
+                    std::io::Read::read_to_string(&mut zip.by_name(name).unwrap(), &mut text)
+                        .unwrap();
+                    text
+                };
+                assert_eq!(read("points3D.txt"), "");
+                CameraInput::Colmap {
+                    cameras: read("cameras.txt"),
+                    images: read("images.txt"),
+                    names: Some(names.clone()),
+                }
+            }
+        };
+        let parsed = input.parse().unwrap();
+        assert_eq!(parsed.cameras.len(), stored.len(), "{format}");
+        for (given, want) in parsed.cameras.iter().zip(&stored) {
+            let i = given.intrinsics;
+            let mut got = given.world_to_camera_rows();
+            got.extend([i.fx, i.fy, i.cx, i.cy]);
+            let worst = got
+                .iter()
+                .zip(want)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            assert!(worst < 1e-9, "{format}: {worst}");
+        }
+    }
+    expect_error(
+        get("ply"),
+        400,
+        "invalid_input",
+        "json, colmap or transforms",
+    );
+    let plain = upload_synthetic(&server);
+    let none = Client::new()
+        .get(server.at(&format!("/v1/clips/{plain}/cameras")))
+        .send()
+        .unwrap();
+    expect_error(none, 404, "not_found", "cameras/recover");
 }

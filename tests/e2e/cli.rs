@@ -1,11 +1,14 @@
 //! The `c4g` command-line tool against a live `c4g-server`: upload, info, decode, export,
-//! render and stream, with readable and `--json` output, and errors a person can act on.
+//! render and stream, with readable and `--json` output, and errors a person can act on; a fit
+//! on a `c4g-fitter` worker, whose scene the commands then serve.
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
 use std::path::Path;
 use std::process::{Command, Output};
 
-use c4g_e2e::{Server, binary, ort_available, shared_data, synthetic_clip};
+use c4g_e2e::{
+    FitterWorker, Server, binary, ort_available, shared_data, synthetic_clip, upload_synthetic,
+};
 use c4g_formats::{frames_zip, ply};
 use reqwest::blocking::Client;
 use serde_json::{Value, json};
@@ -199,4 +202,128 @@ fn the_cli_uploads_a_real_video_with_a_window_and_a_stride() {
     assert!((times[0] - 1.001).abs() < 1e-3, "{times:?}");
     assert!(times.iter().all(|t| (1.0..=3.0).contains(t)), "{times:?}");
     assert_eq!(clip["source"]["frames"], 289);
+}
+
+/// The server's decode at `t` from `scene`: the scene that served it (`X-C4G-Scene`), and the sets.
+fn rest_decode(server: &Server, id: &str, t: f64, scene: &str) -> (String, Value) {
+    let response = Client::new()
+        .post(server.at(&format!("/v1/clips/{id}/gaussians")))
+        .json(&json!({"t": t, "scene": scene}))
+        .send()
+        .unwrap();
+    assert_eq!(response.status(), 200);
+    let served = response.headers()["x-c4g-scene"]
+        .to_str()
+        .unwrap()
+        .to_owned();
+    (served, response.json().unwrap())
+}
+
+#[test]
+fn the_cli_fits_a_clip_and_then_serves_the_fitted_scene() {
+    if !ort_available() {
+        return;
+    }
+    let server = Server::start(&[]);
+    let id = upload_synthetic(&server);
+    let work = tempfile::tempdir().unwrap();
+    let _worker = FitterWorker::start(&server.url(), "f1");
+
+    // A tiny fit, followed to its end; the summary is the clip's record of the fitted scene. The
+    // synthetic clip keeps 7 frames: every 4th is held out, so the fit scores one.
+    let summary = ok(c4g(
+        &server,
+        &[
+            "fit",
+            &id,
+            "--preset",
+            "fast",
+            "--steps",
+            "8",
+            "--resolution",
+            "32",
+            "--max-frames",
+            "8",
+            "--holdout-every",
+            "4",
+        ],
+    ));
+    let record: Value = Client::new()
+        .get(server.at(&format!("/v1/clips/{id}")))
+        .send()
+        .unwrap()
+        .json()
+        .unwrap();
+    let fitted = &record["fitted"];
+    assert_eq!(fitted["steps"], 8, "{record:#}");
+    assert_eq!(fitted["preset"], "fast");
+    assert_eq!(fitted["holdout_frames"], json!([3]), "{record:#}");
+    assert!(summary.starts_with(&format!("{id}\n")), "{summary}");
+    let psnr = |key: &str| fitted[key].as_f64().unwrap();
+    for part in [
+        format!(
+            "held-out  {:.2} dB PSNR fitted, {:.2} feed-forward ({:+.2} dB) on 1 frame\n",
+            psnr("holdout_psnr"),
+            psnr("holdout_psnr_feed_forward"),
+            psnr("holdout_psnr") - psnr("holdout_psnr_feed_forward")
+        ),
+        format!(
+            "{} Gaussians ({} static) at {} keyframes",
+            fitted["gaussians"],
+            fitted["static_gaussians"],
+            fitted["keyframes"].as_array().unwrap().len()
+        ),
+        format!("8 steps in {:.3} s", fitted["seconds"].as_f64().unwrap()),
+        format!("job       {}", fitted["job_id"].as_str().unwrap()),
+    ] {
+        assert!(summary.contains(&part), "{part:?} not in\n{summary}");
+    }
+    let info = ok(c4g(&server, &["info", &id]));
+    assert!(info.contains("fitted    "), "{info}");
+
+    // `--scene fitted` decodes the fitted scene, as the server serves it; `feed-forward` the
+    // model's answer, which differs.
+    let decode = |scene: &str| -> Value {
+        serde_json::from_str(&ok(c4g(
+            &server,
+            &["--json", "decode", &id, "--t", "0.3", "--scene", scene],
+        )))
+        .unwrap()
+    };
+    let (served, rest) = rest_decode(&server, &id, 0.3, "fitted");
+    assert_eq!(served, "fitted");
+    assert_eq!(decode("fitted")["frames"], rest["frames"]);
+    let (served, model) = rest_decode(&server, &id, 0.3, "feed-forward");
+    assert_eq!(served, "feed-forward");
+    assert_eq!(decode("feed-forward")["frames"], model["frames"]);
+    assert_ne!(rest["frames"], model["frames"]);
+    let summary = ok(c4g(
+        &server,
+        &["decode", &id, "--t", "0.3", "--scene", "fitted"],
+    ));
+    assert!(
+        summary.contains(&format!("{} Gaussians", fitted["gaussians"])),
+        "{summary}"
+    );
+
+    // A render says which scene served it: auto is the fitted one now.
+    let image = work.path().join("view.png");
+    let line: Value = serde_json::from_str(&ok(c4g(
+        &server,
+        &[
+            "--json",
+            "render",
+            &id,
+            "--t",
+            "0.3",
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "-o",
+            path(&image),
+        ],
+    )))
+    .unwrap();
+    assert_eq!(line["scene"], "fitted", "{line}");
 }

@@ -458,7 +458,10 @@ async fn a_database_down_at_start_is_unavailable_until_it_comes() {
     let jobs = PostgresJobs::connect(&db.url(), "model", LEASE, 2)
         .await
         .expect("opens without the database");
-    let down = jobs.create("clip", serde_json::json!({})).await.unwrap_err();
+    let down = jobs
+        .create("clip", serde_json::json!({}))
+        .await
+        .unwrap_err();
     assert_eq!(down.kind(), ServiceErrorKind::Unavailable, "{down}");
     assert!(down.to_string().contains("C4G_JOB_DATABASE"), "{down}");
     db.resume();
@@ -472,7 +475,10 @@ async fn a_database_down_at_start_is_unavailable_until_it_comes() {
             }
         }
     };
-    assert_eq!(jobs.take("w", Duration::ZERO).await.unwrap().unwrap().id, job.id);
+    assert_eq!(
+        jobs.take("w", Duration::ZERO).await.unwrap().unwrap().id,
+        job.id
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -42,6 +42,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/clips/{id}/export", post(export::export))
         .route("/v1/clips/{id}/tracks", post(tracks::tracks))
         .route("/v1/clips/{id}/segment", post(segment::segment))
+        .route("/v1/clips/{id}/cameras", get(cameras::files))
         .route("/v1/clips/{id}/cameras/recover", post(cameras::recover))
         .route("/v1/clips/{id}/refine", post(jobs::submit))
         .route("/v1/clips/{id}/fit", post(jobs::submit_fit))

@@ -181,20 +181,16 @@ pub async fn build_work(views: &Arc<Views>, job: &JobRecord) -> Result<FitWork, 
         let camera = input_camera(cameras.as_ref(), times[k]);
         let i = camera.intrinsics;
         let given = cameras.as_ref().is_some_and(|c| c.format != "recovered");
-        let intrinsics = if given {
-            crop_fractions(
-                [i.fx, i.fy, i.cx, i.cy],
-                record.source.width,
-                record.source.height,
-            )
+        let i = if given {
+            i.frame_to_crop(record.source.width, record.source.height)
         } else {
-            [i.fx, i.fy, i.cx, i.cy]
+            i
         };
         frames.push(FitFrame {
             time: times[k],
             png,
             world_to_camera: camera.world_to_camera,
-            intrinsics,
+            intrinsics: [i.fx, i.fy, i.cx, i.cy],
         });
     }
     let frame_times: Vec<f64> = frames.iter().map(|f| f.time).collect();
@@ -296,20 +292,6 @@ pub async fn complete(
         .await
 }
 
-/// Given cameras' intrinsics, fractions of the whole `width` × `height` frame (as uploads state
-/// them), as fractions of the model's square centre crop (as the model's own camera and recovered
-/// cameras are, and as a fit worker reads them).
-fn crop_fractions([fx, fy, cx, cy]: [f64; 4], width: u32, height: u32) -> [f64; 4] {
-    let (w, h) = (f64::from(width.max(1)), f64::from(height.max(1)));
-    let side = w.min(h);
-    [
-        fx * w / side,
-        fy * h / side,
-        (cx * w - (w - side) / 2.0) / side,
-        (cy * h - (h - side) / 2.0) / side,
-    ]
-}
-
 /// Frames the clip keeps for fits (its context frames when it keeps none).
 fn kept_count(record: &ClipRecord) -> usize {
     record
@@ -372,17 +354,6 @@ mod tests {
             ..Default::default()
         };
         assert!(huge.settings().is_err());
-    }
-
-    /// A camera of the whole frame and the same camera of its centre crop see one pixel alike.
-    #[test]
-    fn whole_frame_intrinsics_become_the_crops() {
-        // 200×100: the crop is the middle 100×100 (x from 50).
-        let [fx, fy, cx, cy] = crop_fractions([0.5, 1.0, 0.5, 0.5], 200, 100);
-        assert!((fx - 1.0).abs() < 1e-12 && (fy - 1.0).abs() < 1e-12);
-        assert!((cx - 0.5).abs() < 1e-12 && (cy - 0.5).abs() < 1e-12);
-        let [_, _, cx, _] = crop_fractions([0.5, 1.0, 0.3, 0.5], 200, 100);
-        assert!((cx - (60.0 - 50.0) / 100.0).abs() < 1e-12, "{cx}");
     }
 
     #[test]

@@ -15,8 +15,10 @@
 //! | [`tracking`] | point tracks through a clip, by Gaussians or by lifted features |
 //! | [`recovery`] | recovered cameras: each context frame's camera by photometric alignment |
 //! | [`camera_scale`] | given cameras fitted to the model's depth scale at upload |
+//! | [`camera_files`] | the clip's input cameras as files other tools open (JSON, COLMAP, transforms.json) |
 
 pub mod camera;
+pub mod camera_files;
 pub mod camera_scale;
 pub mod exports;
 pub mod feature_field;

@@ -229,3 +229,43 @@ fn parse_images(text: &str) -> Result<Vec<Image>, ServiceError> {
     }
     Ok(images)
 }
+
+/// `cameras` (of `width` × `height` images named `names`) as COLMAP's text model: `cameras.txt`
+/// with one `PINHOLE` camera per image (pixel intrinsics) and `images.txt` with each image's
+/// world-to-camera quaternion (scalar first) and translation and an empty line of 2D points, as
+/// [`parse`] reads them. Numbers are written in full (Rust's shortest round-trip form).
+pub fn write(
+    cameras: &[GivenCamera],
+    names: &[String],
+    width: u32,
+    height: u32,
+) -> (String, String) {
+    let (w, h) = (f64::from(width), f64::from(height));
+    let mut lenses = String::from(
+        "# Camera list with one line of data per camera:\n\
+         #   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n",
+    );
+    let mut images = String::from(
+        "# Image list with two lines of data per image:\n\
+         #   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n\
+         #   POINTS2D[] as (X, Y, POINT3D_ID)\n",
+    );
+    for (k, (camera, name)) in cameras.iter().zip(names).enumerate() {
+        let id = k + 1;
+        let i = camera.intrinsics;
+        lenses.push_str(&format!(
+            "{id} PINHOLE {width} {height} {} {} {} {}\n",
+            i.fx * w,
+            i.fy * h,
+            i.cx * w,
+            i.cy * h
+        ));
+        let q = glam::DQuat::from_mat3(&camera.rotation).normalize();
+        let t = camera.translation;
+        images.push_str(&format!(
+            "{id} {} {} {} {} {} {} {} {id} {name}\n\n",
+            q.w, q.x, q.y, q.z, t.x, t.y, t.z
+        ));
+    }
+    (lenses, images)
+}

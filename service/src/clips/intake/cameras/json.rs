@@ -41,3 +41,18 @@ pub fn parse(text: &str) -> Result<Vec<GivenCamera>, ServiceError> {
         })
         .collect()
 }
+
+/// `cameras` as the list [`parse`] reads: `world_to_camera` row-major and intrinsics as fractions
+/// of the image size.
+pub fn write(cameras: &[GivenCamera]) -> String {
+    let list: Vec<serde_json::Value> = cameras
+        .iter()
+        .map(|c| {
+            serde_json::json!({
+                "world_to_camera": c.world_to_camera_rows(),
+                "intrinsics": c.intrinsics,
+            })
+        })
+        .collect();
+    serde_json::to_string_pretty(&list).unwrap_or_default()
+}

@@ -14,6 +14,8 @@
 //! | `nerfstudio` | nerfstudio's `transforms.json` (OpenGL camera-to-world, pixel intrinsics) |
 //! | `model_frame` | the context frames' cameras in the model's frame ([`ClipCameras`]), as stored |
 //! | `input_path` | the input camera at any time: the stored cameras interpolated ([`input_camera`]) |
+//!
+//! Each form's writer sits beside its reader ([`write`]): cameras go out as they came in.
 
 mod colmap;
 mod input_path;
@@ -75,6 +77,46 @@ pub const ASPECT_TOLERANCE: f64 = 0.01;
 /// be the natural bound, but parsing happens before the frames are read, so a fixed bound keeps
 /// a hostile camera file from costing more than the frames themselves.
 pub const MAX_CAMERAS: usize = 100_000;
+
+/// The forms cameras go out in (`GET /v1/clips/{id}/cameras?format=`): each written beside its
+/// reader, so what goes out is what an upload reads back.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CameraFormat {
+    /// The JSON list (`cameras.json`).
+    Json,
+    /// COLMAP's text model (`cameras.txt`, `images.txt`, and an empty `points3D.txt`, which
+    /// COLMAP's model readers expect).
+    Colmap,
+    /// nerfstudio's `transforms.json`.
+    Transforms,
+}
+
+/// `cameras` of `width` × `height` images named `names` (frame order) as the files of `format`:
+/// (file name, contents).
+pub fn write(
+    format: CameraFormat,
+    cameras: &[GivenCamera],
+    names: &[String],
+    width: u32,
+    height: u32,
+) -> Vec<(&'static str, String)> {
+    match format {
+        CameraFormat::Json => vec![("cameras.json", json::write(cameras))],
+        CameraFormat::Colmap => {
+            let (lenses, images) = colmap::write(cameras, names, width, height);
+            vec![
+                ("cameras.txt", lenses),
+                ("images.txt", images),
+                ("points3D.txt", String::new()),
+            ]
+        }
+        CameraFormat::Transforms => vec![(
+            "transforms.json",
+            nerfstudio::write(cameras, names, width, height),
+        )],
+    }
+}
 
 impl CameraInput {
     /// Reads and checks every camera.

@@ -195,3 +195,37 @@ fn opengl_to_opencv(m: &[f64]) -> Vec<f64> {
     }
     out
 }
+
+/// `cameras` (of `width` × `height` images at `file_paths`) as nerfstudio's `transforms.json`:
+/// per frame, its pixel intrinsics and its camera-to-world `transform_matrix` with OpenGL axes
+/// (OpenCV's camera y and z flipped), as [`parse`] reads them.
+pub fn write(cameras: &[GivenCamera], file_paths: &[String], width: u32, height: u32) -> String {
+    let (w, h) = (f64::from(width), f64::from(height));
+    let frames: Vec<Value> = cameras
+        .iter()
+        .zip(file_paths)
+        .map(|(camera, path)| {
+            let to_world = camera.rotation.transpose();
+            // Columns: the camera's axes in the world (y and z flipped), then its centre.
+            let axes = [to_world.x_axis, -to_world.y_axis, -to_world.z_axis];
+            let centre = camera.centre();
+            let row = |r: usize| {
+                let pick = |v: glam::DVec3| v.to_array()[r];
+                serde_json::json!([pick(axes[0]), pick(axes[1]), pick(axes[2]), pick(centre)])
+            };
+            let i = camera.intrinsics;
+            serde_json::json!({
+                "file_path": path,
+                "fl_x": i.fx * w,
+                "fl_y": i.fy * h,
+                "cx": i.cx * w,
+                "cy": i.cy * h,
+                "w": width,
+                "h": height,
+                "transform_matrix": [row(0), row(1), row(2), [0.0, 0.0, 0.0, 1.0]],
+            })
+        })
+        .collect();
+    let root = serde_json::json!({"camera_model": "PINHOLE", "frames": frames});
+    serde_json::to_string_pretty(&root).unwrap_or_default()
+}

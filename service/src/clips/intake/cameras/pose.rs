@@ -71,6 +71,30 @@ impl Intrinsics {
         .checked(name)
     }
 
+    /// Fractions of the whole `width` × `height` frame (as uploads state them) as fractions of
+    /// its centred square crop (as the model's own camera, and cameras recovered from its
+    /// views, are): one pixel seen alike.
+    pub fn frame_to_crop(self, width: u32, height: u32) -> Self {
+        let (w, h, side) = sides(width, height);
+        Self {
+            fx: self.fx * w / side,
+            fy: self.fy * h / side,
+            cx: (self.cx * w - (w - side) / 2.0) / side,
+            cy: (self.cy * h - (h - side) / 2.0) / side,
+        }
+    }
+
+    /// The inverse of [`frame_to_crop`](Self::frame_to_crop).
+    pub fn crop_to_frame(self, width: u32, height: u32) -> Self {
+        let (w, h, side) = sides(width, height);
+        Self {
+            fx: self.fx * side / w,
+            fy: self.fy * side / h,
+            cx: (self.cx * side + (w - side) / 2.0) / w,
+            cy: (self.cy * side + (h - side) / 2.0) / h,
+        }
+    }
+
     /// These intrinsics, when every value is finite and in the range `CameraSpec` accepts.
     pub fn checked(self, name: &str) -> Result<Self, ServiceError> {
         let focal = SMALLEST_LENGTH..=FOCAL_BOUND;
@@ -92,6 +116,12 @@ impl Intrinsics {
         }
         Ok(self)
     }
+}
+
+/// A frame's width, height and the side of its centred square crop, at least 1 pixel.
+fn sides(width: u32, height: u32) -> (f64, f64, f64) {
+    let (w, h) = (f64::from(width.max(1)), f64::from(height.max(1)));
+    (w, h, w.min(h))
 }
 
 /// A frame's camera as given: `p_cam = rotation · p_world + translation`, OpenCV axes.
@@ -175,6 +205,17 @@ impl GivenCamera {
     /// The camera's centre in the world.
     pub fn centre(&self) -> DVec3 {
         -(self.rotation.transpose() * self.translation)
+    }
+
+    /// The world-to-camera pose as a row-major 4×4 matrix.
+    pub fn world_to_camera_rows(&self) -> Vec<f64> {
+        let (r, t) = (self.rotation, self.translation);
+        vec![
+            r.x_axis.x, r.y_axis.x, r.z_axis.x, t.x, //
+            r.x_axis.y, r.y_axis.y, r.z_axis.y, t.y, //
+            r.x_axis.z, r.y_axis.z, r.z_axis.z, t.z, //
+            0.0, 0.0, 0.0, 1.0,
+        ]
     }
 }
 

@@ -365,3 +365,77 @@ fn cameras_must_be_one_per_source_frame_and_of_the_frames_shape() {
     let json = CameraInput::Json(as_json(&capture())).parse().unwrap();
     json.check_against(5, 1280, 720).unwrap();
 }
+
+/// What goes out reads back: each form written from a clip's cameras and read by the upload's
+/// reader gives the same stored cameras (1e-9: the numbers are written in full; only the
+/// quaternion and OpenGL round trips' arithmetic separates them).
+#[test]
+fn every_form_written_reads_back_as_the_same_cameras() {
+    let c = capture();
+    let given = CameraInput::Json(as_json(&c)).parse().unwrap().cameras;
+    let names: Vec<String> = (0..given.len()).map(|k| format!("{k:03}.png")).collect();
+    let before = stored(CameraInput::Json(as_json(&c)));
+    for format in [
+        CameraFormat::Json,
+        CameraFormat::Colmap,
+        CameraFormat::Transforms,
+    ] {
+        let files = write(format, &given, &names, W as u32, H as u32);
+        let file = |name: &str| {
+            files
+                .iter()
+                .find(|(n, _)| *n == name)
+                .map(|(_, text)| text.clone())
+                .unwrap()
+        };
+        let input = match format {
+            CameraFormat::Json => CameraInput::Json(file("cameras.json")),
+            CameraFormat::Colmap => CameraInput::Colmap {
+                cameras: file("cameras.txt"),
+                images: file("images.txt"),
+                names: Some(names.clone()),
+            },
+            CameraFormat::Transforms => CameraInput::Transforms {
+                json: file("transforms.json"),
+                names: Some(names.clone()),
+            },
+        };
+        let parsed = input.parse().unwrap();
+        if format != CameraFormat::Json {
+            assert_eq!(parsed.image_sizes[0], (W, H), "{format:?}");
+        }
+        let after = stored(input);
+        assert!(
+            largest_difference(&before, &after) < 1e-9,
+            "{format:?}: {}",
+            largest_difference(&before, &after)
+        );
+    }
+}
+
+/// Whole-frame and crop fractions describe one camera: there and back is the identity, and the
+/// crop of a wide frame sees its centre where the frame does.
+#[test]
+fn crop_and_frame_fractions_convert_both_ways() {
+    let k = Intrinsics {
+        fx: 0.5,
+        fy: 0.9,
+        cx: 0.3,
+        cy: 0.55,
+    };
+    let crop = k.frame_to_crop(200, 100);
+    // 200×100: the crop is x in [50, 150): fx 0.5·200 = 100 px = 1.0 of the crop.
+    assert!(
+        (crop.fx - 1.0).abs() < 1e-12 && (crop.cx - 0.1).abs() < 1e-12,
+        "{crop:?}"
+    );
+    let back = crop.crop_to_frame(200, 100);
+    for (a, b) in [
+        (k.fx, back.fx),
+        (k.fy, back.fy),
+        (k.cx, back.cx),
+        (k.cy, back.cy),
+    ] {
+        assert!((a - b).abs() < 1e-12);
+    }
+}
