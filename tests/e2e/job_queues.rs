@@ -442,10 +442,6 @@ async fn jobs_belong_to_their_model() {
     );
 }
 
-/// A database that goes away answers `unavailable` (503 / UNAVAILABLE, retry) within the
-/// connect timeout, never hangs, and the store works again once it is back; a bad URL is refused
-/// at start with what is wrong.
-
 /// A database that is down when the store opens (containers start in any order) is no reason to
 /// stop: the store opens, answers `unavailable` until the database comes, then makes its tables
 /// and works.
@@ -481,6 +477,9 @@ async fn a_database_down_at_start_is_unavailable_until_it_comes() {
     );
 }
 
+/// A database that goes away answers `unavailable` (503 / UNAVAILABLE, retry) within the
+/// connect timeout, never hangs, and the store works again once it is back; a bad URL is refused
+/// at start with what is wrong.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_database_outage_is_unavailable_and_passes() {
     let Some(db) = TempPostgres::start() else {
