@@ -64,6 +64,8 @@ const state = {
   source: null,
   times: [],
   fps: 10,
+  // How many of the times lie on the frame-rate grid (frames.js's frameTimes).
+  grid: 0,
   index: 0,
   playing: false,
   lastStep: 0,
@@ -241,7 +243,8 @@ async function changeScene() {
 
 function setControls(enabled) {
   const exports = ui.exports.map(([, button]) => button);
-  for (const control of [ui.play, ui.time, ui.compare, ui.ply, ui.splat, ui.scene, ...exports]) control.disabled = !enabled;
+  const controls = [ui.play, ui.time, ui.compare, ui.ply, ui.splat, ui.scene, ...exports];
+  for (const control of controls) control.disabled = !enabled;
   ui.fit.disabled = !enabled || fitRunning();
   ui.play.textContent = state.playing ? 'Pause' : 'Play';
 }
@@ -290,7 +293,7 @@ function draw(set) {
 }
 
 /**
- * The clip's context frame nearest time `t` beside the canvas, at its height: what the model
+ * The clip's context frame nearest time `t` beside the canvas, within its size: what the model
  * reconstructed the scene from (a fit also trains on the source frames between them). The square
  * centre crop the model sees, which the first camera's view shows, is outlined on a frame that is
  * not square.
@@ -317,8 +320,11 @@ function showInput(t) {
       if (state.input !== shown) return;
       const [w, h] = [ui.inputView.naturalWidth, ui.inputView.naturalHeight];
       Object.assign(shown, { loaded: true, width: w, height: h });
-      ui.inputView.style.height = `${SIZE}px`;
-      ui.inputView.style.width = `${Math.round((SIZE * w) / h)}px`;
+      // Within the canvas's square: a wide video's frame would otherwise push the comparison
+      // onto another row.
+      const scale = SIZE / Math.max(w, h);
+      ui.inputView.style.width = `${Math.round(w * scale)}px`;
+      ui.inputView.style.height = `${Math.round(h * scale)}px`;
       const side = Math.min(w, h);
       ui.inputCrop.hidden = w === h;
       Object.assign(ui.inputCrop.style, {
@@ -503,24 +509,35 @@ function duration(seconds) {
   return `${Math.floor(seconds / 60)} min ${Math.round(seconds % 60)} s`;
 }
 
-/** What the clip's fitted scene is and how it scores, or nothing when it has none. */
-function showFitted(fitted) {
-  if (!fitted) {
-    showFitStatus('');
-    return;
-  }
+/**
+ * What the clip's fitted scene is and how it scores ('' when it has none). The held-out frames'
+ * PSNR is the reconstruction's quality on frames the fit never trained on, beside the
+ * feed-forward scene's on the same frames.
+ */
+function fittedSummary(fitted) {
+  if (!fitted) return '';
   const dB = (v) => `${v.toFixed(1)} dB`;
   const held = fitted.holdout_frames.length;
-  const score =
-    fitted.holdout_psnr !== null && held > 0
-      ? `held-out PSNR ${dB(fitted.holdout_psnr)} fitted against ${dB(fitted.holdout_psnr_feed_forward)} ` +
-        `feed-forward, on ${held} source frame${held === 1 ? '' : 's'} the fit never trained on`
-      : 'no frames held out' + (fitted.train_psnr !== null ? ` (PSNR ${dB(fitted.train_psnr)} on its training frames)` : '');
-  showFitStatus(
+  let score;
+  if (fitted.holdout_psnr !== null && held > 0) {
+    const against =
+      fitted.holdout_psnr_feed_forward !== null ? ` against ${dB(fitted.holdout_psnr_feed_forward)} feed-forward` : '';
+    score =
+      `held-out PSNR ${dB(fitted.holdout_psnr)} fitted${against}, ` +
+      `on ${held} source frame${held === 1 ? '' : 's'} the fit never trained on`;
+  } else {
+    const trained = fitted.train_psnr !== null ? ` (PSNR ${dB(fitted.train_psnr)} on its training frames)` : '';
+    score = `no frames held out${trained}`;
+  }
+  return (
     `Fitted scene (${fitted.preset}): ${fitted.steps} steps on ${fitted.frames} source frames in ` +
-      `${duration(fitted.seconds)}; ${fitted.gaussians.toLocaleString('en')} Gaussians ` +
-      `(${fitted.static_gaussians.toLocaleString('en')} static) at ${fitted.keyframes.length} keyframes; ${score}.`,
+    `${duration(fitted.seconds)}; ${fitted.gaussians.toLocaleString('en')} Gaussians ` +
+    `(${fitted.static_gaussians.toLocaleString('en')} static) at ${fitted.keyframes.length} keyframes; ${score}.`
   );
+}
+
+function showFitted(fitted) {
+  showFitStatus(fittedSummary(fitted));
 }
 
 /** A fit job's record as the progress bar and a line of text. */
@@ -533,12 +550,14 @@ function showFitJob(job) {
   ui.fit.disabled = !ended || !state.source;
   if (p.steps) ui.fitProgress.value = p.step / p.steps;
   else ui.fitProgress.removeAttribute('value');
+  // An earlier fit's scene stays the clip's when this one fails or is cancelled: say which.
+  const earlier = fittedSummary(state.clip?.fitted);
   if (job.state === 'failed') {
-    showFitStatus(`The fit failed: ${job.error || 'no reason given'}`, true);
+    showFitStatus([`The fit failed: ${job.error || 'no reason given'}.`, earlier].join(' ').trim(), true);
     return;
   }
   if (job.state === 'cancelled') {
-    showFitStatus("The fit was cancelled: the clip's scenes are as they were.");
+    showFitStatus(["The fit was cancelled: the clip's scenes are as they were.", earlier].join(' ').trim());
     return;
   }
   if (job.state === 'done') return;
@@ -564,7 +583,14 @@ function showFitJob(job) {
 /** Follows fit job `job` until it ends; a done fit's scene is then shown. */
 function followFit(job) {
   state.fit?.controller.abort();
-  const fit = { id: job.id, clip: job.clip_id, record: job, stages: [], controller: new AbortController(), error: null };
+  const fit = {
+    id: job.id,
+    clip: job.clip_id,
+    record: job,
+    stages: [],
+    controller: new AbortController(),
+    error: null,
+  };
   state.fit = fit;
   const seen = (record) => {
     if (state.fit !== fit) return;
@@ -753,7 +779,7 @@ window.c4gViewer = {
     fittedEnabled: !ui.scene.querySelector('option[value="fitted"]').disabled,
     text: ui.sceneShown.value,
   }),
-  /** The fit followed: its job, state, the stages seen, the status line; and the input frame. */
+  /** The fit the page follows: its job, state, progress, the stages seen, its status line. */
   fit: () =>
     state.fit && {
       id: state.fit.id,

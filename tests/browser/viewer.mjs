@@ -231,6 +231,39 @@ async function fitReached(page, stage) {
 }
 
 /**
+ * frames.js on its own on `clip`, which has a fitted scene now, asked for `auto` and made to start
+ * further streams (a far scrub, the span's end): the scene its first answer named, and the
+ * `scene` of every stream request's body (none in the first: auto is the server's default).
+ */
+async function pinnedScene(page, clip) {
+  const scenes = [];
+  const fps = 48;
+  await page.route('**/stream', (route) => {
+    // This source's requests only, by their step: the page's own (at the clip's 10 fps) may
+    // still be loading the fitted scene it switched to.
+    const body = route.request().postDataJSON();
+    if (Math.abs(body.step - 1 / fps) < 1e-9) scenes.push(body.scene ?? null);
+    return route.continue();
+  });
+  const pinned = await page.evaluate(
+    async ([id, fps]) => {
+      const { FrameSource, frameTimes } = await import('/viewer/assets/frames.js');
+      const view = { id, span: [0, 0.6], source: { fps } };
+      const { times, grid } = frameTimes(view);
+      const source = new FrameSource(view, times, { fps, grid });
+      await source.want(0);
+      await source.want(grid - 4);
+      await source.want(times.length - 1);
+      source.close();
+      return { served: source.served, requests: source.requests };
+    },
+    [clip, fps],
+  );
+  await page.unroute('**/stream');
+  return { ...pinned, scenes };
+}
+
+/**
  * The page's own fits of `clip` with its Fit button: a long one, followed until its status
  * reports steps, then cancelled with its Cancel button (the clip still has no fitted scene); then
  * a tiny one, to the end, after which the page shows the fitted scene; then the scene picker to
@@ -244,7 +277,8 @@ async function fits(page, base, clip, size, out) {
   await settled(page, last, clip);
   const result = { before: await page.evaluate(() => window.c4gViewer.scene()) };
 
-  const tiny = { resolution: 32, max_frames: 8 };
+  // Every 4th frame held out: the synthetic clip's 7 frames are under the presets' 8.
+  const tiny = { resolution: 32, max_frames: 8, holdout_every: 4 };
   await page.evaluate((o) => window.c4gViewer.fitOptions(o), { ...tiny, steps: 100000 });
   await page.click('#fit');
   const running = await fitReached(page, 'fitting');
@@ -256,6 +290,7 @@ async function fits(page, base, clip, size, out) {
   await page.evaluate((o) => window.c4gViewer.fitOptions(o), { ...tiny, steps: 6 });
   await page.click('#fit');
   result.done = await fitReached(page, 'done');
+  result.pinned = await pinnedScene(page, clip);
   result.views = [];
   for (const [name, scene] of [
     ['fitted', 'fitted'],
@@ -366,7 +401,10 @@ async function main() {
     result.difference = await differenceShown(page, a.out);
     // The page as it looks then (for docs/viewer/): the WebGL view beside the server's.
     const bottom = await page.locator('#status').evaluate((e) => e.getBoundingClientRect().bottom);
-    const clip = { x: 0, y: 0, width: 800, height: Math.ceil(bottom) + 8 };
+    const right = await page.evaluate(() =>
+      Math.max(...[...document.querySelectorAll('#stage > figure:not([hidden])')].map((f) => f.getBoundingClientRect().right)),
+    );
+    const clip = { x: 0, y: 0, width: Math.max(800, Math.ceil(right) + 14), height: Math.ceil(bottom) + 8 };
     await page.screenshot({ path: path.join(a.out, 'page.png'), clip });
     result.downloads = {};
     for (const format of ['ply', 'splat', 'ply_zip', 'spz_zip', 'splatv']) {
