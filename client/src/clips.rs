@@ -4,7 +4,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
 
 use crate::client::json;
-use crate::{Client, Error};
+use crate::{Client, Error, FittedSummary};
 
 /// An uploaded clip (`POST /v1/clips`, `GET /v1/clips/{id}`). Fields the client does not name are
 /// kept in [`extra`](Self::extra), and optional ones stay absent when the server leaves them out,
@@ -34,6 +34,10 @@ pub struct Clip {
     /// On upload: true when this upload created the clip, false when it was already stored.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub created: Option<bool>,
+    /// The clip's fitted scene, once a fit made one ([`Client::fit`]): requests serve it by
+    /// default.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fitted: Option<FittedSummary>,
     /// Everything else the server reported.
     #[serde(flatten)]
     pub extra: Map<String, Value>,

@@ -6,7 +6,8 @@ use std::path::Path;
 use bytes::Bytes;
 use serde_json::json;
 
-use crate::{Approximation, Client, Error, Spacing};
+use crate::quality::served_scene;
+use crate::{Approximation, Client, Error, Scene, Spacing};
 
 /// The files an export can be.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -73,6 +74,8 @@ pub struct Export {
     pub sets: usize,
     /// For `.splatv`: the fit's largest and RMS position error over those sets, scene units.
     pub fit_position_error: Option<(f64, f64)>,
+    /// The scene the sets came from (`X-C4G-Scene`: feed-forward or fitted).
+    pub scene: Option<Scene>,
 }
 
 impl Client {
@@ -108,10 +111,12 @@ impl Client {
             .and_then(|v| v.parse().ok())
             .unwrap_or(0);
         let fit_position_error = header("x-c4g-fit-position-error").and_then(|v| parse_fit(&v));
+        let scene = served_scene(response.headers());
         Ok(Export {
             bytes: response.bytes().await?,
             sets,
             fit_position_error,
+            scene,
         })
     }
 }

@@ -1,7 +1,8 @@
-//! Refinement jobs: [`Client::refine`] submits one (`POST /v1/clips/{id}/refine`), a worker
+//! Jobs: [`Client::refine`] submits a refinement (`POST /v1/clips/{id}/refine`), a worker
 //! process runs the video diffusion model on it, and the job's record ([`Job`]) tells where it
 //! is. [`Client::job_events`] follows a job as server-sent events until it ends;
-//! [`Client::job_result`] fetches the refined video.
+//! [`Client::job_result`] fetches the refined video. Fits ([`Client::fit`](crate::Client::fit))
+//! are jobs too, of `kind` `fit`, described, followed and cancelled by the same calls.
 //!
 //! [`Client::refine`] takes any serialisable request, so a [`RefineRequest`] and a hand-written
 //! `serde_json::Value` both work; fields the typed request leaves `None` are not sent, and the
@@ -19,14 +20,17 @@ use crate::render::CameraSpec;
 use crate::sse::{SseDecoder, SseEvent};
 use crate::{Client, Error};
 
-/// A refinement job, as `GET /v1/jobs/{id}` and every job event describe it. Fields the client
-/// does not name (the request, timestamps) are kept in [`extra`](Self::extra), so a job
-/// re-serialises as the server sent it.
+/// A job, as `GET /v1/jobs/{id}` and every job event describe it. Fields the client does not
+/// name (the request, timestamps) are kept in [`extra`](Self::extra), so a job re-serialises as
+/// the server sent it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Job {
     /// The job id.
     pub id: String,
-    /// The clip it refines.
+    /// `refine` or `fit` (empty from a server that does not say).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub kind: String,
+    /// The clip it refines or fits.
     #[serde(default)]
     pub clip_id: String,
     /// `queued`, `running`, `done`, `failed` or `cancelled` (see [`is_terminal`](Self::is_terminal)).
@@ -50,7 +54,8 @@ pub struct Job {
     /// What happened to it, oldest first (`attempt 1: worker w1 stopped responding`).
     #[serde(default)]
     pub history: Vec<String>,
-    /// Refined frames stored (once done): `?frame=k` of the result takes `k` below this.
+    /// Refined frames stored (once a refinement is done): `?frame=k` of the result takes `k`
+    /// below this. A fit's result is the clip's fitted scene instead.
     #[serde(default)]
     pub result_frames: u64,
     /// Seconds the successful attempt took on its worker.
@@ -71,6 +76,11 @@ impl Job {
     pub fn is_done(&self) -> bool {
         self.state == "done"
     }
+
+    /// True for a fit job.
+    pub fn is_fit(&self) -> bool {
+        self.kind == "fit"
+    }
 }
 
 /// Progress of a running job.
@@ -82,9 +92,21 @@ pub struct JobProgress {
     /// Steps in all.
     #[serde(default)]
     pub steps: u32,
-    /// What the worker is doing.
+    /// What the worker is doing (a fit: `preparing`, `fitting`, `storing`).
     #[serde(default)]
     pub stage: String,
+    /// A fit's loss at its latest step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loss: Option<f64>,
+    /// A fit's mean PSNR (dB) on its held-out frames, when it last scored them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub holdout_psnr: Option<f64>,
+    /// A fit's Gaussians per keyframe now.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gaussians: Option<u64>,
+    /// Seconds the worker has spent on this attempt.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub elapsed_s: Option<f64>,
     /// Everything else the server reported.
     #[serde(flatten)]
     pub extra: Map<String, Value>,

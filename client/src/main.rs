@@ -1,6 +1,6 @@
 //! `c4g`: the command-line client of the c4g service. Upload a clip, then decode, export, render
-//! and stream its Gaussians, and refine novel views (`c4g refine`). `c4g --help` lists the
-//! commands; `src/cli/` has one file per command.
+//! and stream its Gaussians, fit its scene to its own frames (`c4g fit`), and refine novel views
+//! (`c4g refine`). `c4g --help` lists the commands; `src/cli/` has one file per command.
 
 mod cli;
 

@@ -58,6 +58,18 @@ impl Scene {
             Self::Fitted => "fitted",
         }
     }
+
+    /// The scene named `name` (as requests and the `X-C4G-Scene` header name them).
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Self::Auto, Self::FeedForward, Self::Fitted]
+            .into_iter()
+            .find(|scene| scene.name() == name)
+    }
+}
+
+/// The scene an answer says served it (`X-C4G-Scene`; `None` from a server that does not say).
+pub(crate) fn served_scene(headers: &reqwest::header::HeaderMap) -> Option<Scene> {
+    Scene::from_name(headers.get("x-c4g-scene")?.to_str().ok()?)
 }
 
 /// Drop the Gaussians that change nothing visible: measured once per clip by the server, the
@@ -158,5 +170,18 @@ mod tests {
             json!({"quality": "fast", "keyframes": {"count": 4}, "prune": {"contribution_px": 1.0, "drop_queries": true}, "scene": "feed-forward"})
         );
         assert_eq!(approximation.proto_quality(), proto::Quality::Fast as i32);
+    }
+
+    #[test]
+    fn scenes_are_read_back_by_the_names_they_are_sent_as() {
+        for scene in [Scene::Auto, Scene::FeedForward, Scene::Fitted] {
+            assert_eq!(Scene::from_name(scene.name()), Some(scene));
+            assert_eq!(
+                serde_json::to_value(scene).unwrap(),
+                json!(scene.name()),
+                "{scene:?}"
+            );
+        }
+        assert_eq!(Scene::from_name("feedforward"), None);
     }
 }

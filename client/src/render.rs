@@ -11,7 +11,8 @@ use bytes::Bytes;
 use reqwest::header::CONTENT_TYPE;
 use serde::{Deserialize, Serialize};
 
-use crate::{Approximation, Client, Error};
+use crate::quality::served_scene;
+use crate::{Approximation, Client, Error, Scene};
 
 /// A render request, as `docs/api.md` describes its JSON.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -168,6 +169,8 @@ pub struct Rendered {
     pub height: Option<u32>,
     /// Floats a pixel of a raw feature image (`X-C4G-Channels`).
     pub channels: Option<u32>,
+    /// The scene that served it (`X-C4G-Scene`: feed-forward or fitted).
+    pub scene: Option<Scene>,
 }
 
 impl Client {
@@ -189,6 +192,7 @@ impl Client {
         let width = number("x-c4g-width");
         let height = number("x-c4g-height");
         let channels = number("x-c4g-channels");
+        let scene = served_scene(headers);
         let content_type = headers
             .get(CONTENT_TYPE)
             .and_then(|v| v.to_str().ok())
@@ -200,6 +204,7 @@ impl Client {
             width,
             height,
             channels,
+            scene,
         })
     }
 }

@@ -5,7 +5,8 @@ use serde::{Deserialize, Serialize};
 use serde_json::json;
 
 use crate::client::json;
-use crate::{Approximation, Client, Error};
+use crate::quality::served_scene;
+use crate::{Approximation, Client, Error, Scene};
 
 /// A point seen at pixel `(x, y)` of the input frame at time `t` (pixel `(i, j)` covers
 /// `[i, i+1) × [j, j+1)`).
@@ -91,6 +92,9 @@ pub struct Tracks {
     pub times: Vec<f64>,
     /// One per query, in order.
     pub tracks: Vec<Track>,
+    /// The scene the tracks were read from (the answer's `X-C4G-Scene` header, not its body).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scene: Option<Scene>,
 }
 
 impl Client {
@@ -109,6 +113,9 @@ impl Client {
             body["width"] = json!(width);
             body["height"] = json!(height);
         }
-        json(self.send(self.http().post(url).json(&body)).await?).await
+        let response = self.send(self.http().post(url).json(&body)).await?;
+        let scene = served_scene(response.headers());
+        let tracks: Tracks = json(response).await?;
+        Ok(Tracks { scene, ..tracks })
     }
 }

@@ -30,6 +30,7 @@ fn help_lists_every_command_and_the_global_flags() {
         "export",
         "render",
         "stream",
+        "fit",
         "refine",
         "job",
         "jobs",
@@ -47,8 +48,8 @@ fn help_lists_every_command_and_the_global_flags() {
 #[test]
 fn every_subcommand_has_help() {
     for command in [
-        "upload", "info", "clips", "delete", "decode", "export", "render", "stream", "refine",
-        "job", "jobs", "cancel",
+        "upload", "info", "clips", "delete", "decode", "export", "render", "stream", "fit",
+        "refine", "job", "jobs", "cancel",
     ] {
         let out = c4g(&[command, "--help"]);
         assert!(out.status.success(), "{command} --help failed");
@@ -428,4 +429,163 @@ fn job_jobs_cancel_and_no_wait_print_the_records() {
         "{summary}"
     );
     handle.join().unwrap();
+}
+
+#[test]
+fn fit_help_names_its_options_and_every_set_command_takes_a_scene() {
+    let out = c4g(&["fit", "--help"]);
+    assert!(out.status.success());
+    let help = String::from_utf8(out.stdout).unwrap();
+    for word in [
+        "<CLIP>",
+        "--preset",
+        "fast",
+        "best",
+        "--steps <N>",
+        "--resolution <PX>",
+        "--max-gaussians <N>",
+        "--keyframe-every <N>",
+        "--holdout-every <N>",
+        "--refine-cameras",
+        "--time-budget <S>",
+        "--seed <N>",
+        "--max-frames <N>",
+        "--no-wait",
+        "--json",
+    ] {
+        assert!(help.contains(word), "fit --help lacks {word}:\n{help}");
+    }
+    for command in ["decode", "export", "render", "stream", "track"] {
+        let help = String::from_utf8(c4g(&[command, "--help"]).stdout).unwrap();
+        assert!(
+            help.contains("--scene <SCENE>") && help.contains("feed-forward"),
+            "{command} --help:\n{help}"
+        );
+    }
+}
+
+#[test]
+fn fit_usage_errors_exit_non_zero() {
+    for args in [
+        &["fit"][..],
+        &["fit", "clip", "--preset", "quick"],
+        &["fit", "clip", "--steps", "-1"],
+        &["fit", "clip", "--time-budget", "soon"],
+        &["decode", "clip", "--t", "0.5", "--scene", "fit"],
+    ] {
+        assert_eq!(c4g(args).status.code(), Some(2), "{args:?}");
+    }
+}
+
+fn fit_job_json(state: &str, fields: serde_json::Value) -> String {
+    let mut job: serde_json::Value = serde_json::from_str(&job_json(state, fields)).unwrap();
+    job["kind"] = "fit".into();
+    job["result_frames"] = 0.into();
+    job.to_string()
+}
+
+#[test]
+fn fit_follows_the_job_and_prints_what_the_fit_made() {
+    let clip = serde_json::json!({
+        "id": "3f2a", "state": "ready", "context_times": [0.0, 0.6],
+        "fitted": {"job_id": "job-01", "preset": "fast", "gaussians": 900,
+                   "static_gaussians": 700, "keyframes": [0.0, 0.3, 0.6], "steps": 8,
+                   "seconds": 2.5, "frames": 8, "resolution": [32, 32],
+                   "holdout_frames": [3, 7], "holdout_times": [0.3, 0.7],
+                   "holdout_psnr": 21.0, "holdout_psnr_feed_forward": 16.0,
+                   "train_psnr": 22.0, "stopped_early": false, "created_at": 5}
+    })
+    .to_string();
+    let route = move |line: &str| match line.split(' ').nth(1).unwrap() {
+        "/v1/clips/3f2a/fit" => (
+            "202 Accepted",
+            "application/json",
+            fit_job_json("queued", serde_json::json!({})).into(),
+        ),
+        "/v1/jobs/job-01/events" => (
+            "200 OK",
+            "text/event-stream",
+            events(&[
+                fit_job_json("queued", serde_json::json!({})),
+                fit_job_json(
+                    "running",
+                    serde_json::json!({"progress": {"step": 4, "steps": 8, "stage": "fitting",
+                        "loss": 0.2, "holdout_psnr": 18.0, "gaussians": 900, "elapsed_s": 1.0}}),
+                ),
+                fit_job_json("done", serde_json::json!({"seconds": 2.5})),
+            ]),
+        ),
+        "/v1/clips/3f2a" => ("200 OK", "application/json", clip.clone().into()),
+        other => panic!("unexpected {other}"),
+    };
+    let (server, handle) = serve(route.clone(), 3);
+    let out = c4g(&[
+        "--server", &server, "fit", "3f2a", "--preset", "fast", "--steps", "8",
+    ]);
+    let lines = handle.join().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(
+        lines,
+        [
+            "POST /v1/clips/3f2a/fit HTTP/1.1",
+            "GET /v1/jobs/job-01/events HTTP/1.1",
+            "GET /v1/clips/3f2a HTTP/1.1",
+        ]
+    );
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(text.starts_with("3f2a\n"), "{text}");
+    for part in [
+        "held-out  21.00 dB PSNR fitted, 16.00 feed-forward (+5.00 dB) on 2 frames",
+        "900 Gaussians (700 static) at 3 keyframes",
+        "8 steps in 2.500 s, 8 frames at 32x32, preset fast",
+    ] {
+        assert!(text.contains(part), "{text}");
+    }
+
+    let (server, handle) = serve(route, 3);
+    let out = c4g(&["--server", &server, "--json", "fit", "3f2a"]);
+    handle.join().unwrap();
+    assert!(out.status.success());
+    let line: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(line["clip"], "3f2a");
+    assert_eq!(line["job"]["state"], "done");
+    assert_eq!(line["fitted"]["holdout_psnr"], 21.0);
+}
+
+#[test]
+fn a_cancelled_fit_exits_1_and_no_wait_prints_the_queued_job() {
+    let (server, handle) = serve(
+        |line| match line.split(' ').nth(1).unwrap() {
+            "/v1/clips/3f2a/fit" => (
+                "202 Accepted",
+                "application/json",
+                fit_job_json("queued", serde_json::json!({})).into(),
+            ),
+            "/v1/jobs/job-01/events" => (
+                "200 OK",
+                "text/event-stream",
+                events(&[fit_job_json("cancelled", serde_json::json!({}))]),
+            ),
+            other => panic!("unexpected {other}"),
+        },
+        3,
+    );
+    let out = c4g(&["--server", &server, "fit", "3f2a"]);
+    assert_eq!(out.status.code(), Some(1));
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        stderr.ends_with("error: job job-01 was cancelled\n"),
+        "{stderr}"
+    );
+    let out = c4g(&["--server", &server, "fit", "3f2a", "--no-wait"]);
+    handle.join().unwrap();
+    let summary = String::from_utf8(out.stdout).unwrap();
+    assert!(
+        summary.starts_with("job-01\n  kind      fit\n  clip      3f2a\n  state     queued"),
+        "{summary}"
+    );
 }

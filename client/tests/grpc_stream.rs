@@ -6,7 +6,7 @@
 
 use std::net::SocketAddr;
 
-use c4g_client::{Approximation, Client, Error, Precision, Spacing, StreamOptions};
+use c4g_client::{Approximation, Client, Error, Precision, Scene, Spacing, StreamOptions};
 use c4g_proto::v1 as proto;
 use c4g_proto::v1::c4g_server::{C4g, C4gServer};
 use futures_util::StreamExt;
@@ -62,6 +62,19 @@ impl C4g for Fake {
         let request = request.into_inner();
         if request.clip_id == "missing" {
             return Err(Status::not_found("no clip missing"));
+        }
+        // The scene the request names, told back by the sign of the set's x: fitted is -1.
+        if request.clip_id == "scenes" {
+            let x = if request.scene == "fitted" { -1.0 } else { 1.0 };
+            let frame = proto::GaussianFrame {
+                time: 0.0,
+                gaussians: Some(set(x, request.precision())),
+                scene: request.scene.clone(),
+                ..Default::default()
+            };
+            return Ok(Response::new(
+                futures_util::stream::iter([Ok(frame)]).boxed(),
+            ));
         }
         let step = match request.spacing {
             Some(proto::stream_gaussians_request::Spacing::Step(step)) => step,
@@ -192,6 +205,33 @@ async fn streamed_sets_arrive_in_order_and_unpacked() {
         assert_eq!(last.positions(), &[[1.25, 0.0, 2.0]]);
         assert_eq!(last.colors(), &[[1.0, 0.5, 0.25]]);
         assert_eq!(last.opacities(), &[0.5]);
+    }
+}
+
+#[tokio::test]
+async fn a_stream_sends_the_scene_it_asks_for() {
+    let address = serve();
+    let client = Client::new(&format!("http://{address}"), Some(KEY)).unwrap();
+    for (scene, x) in [
+        (None, 1.0),
+        (Some(Scene::FeedForward), 1.0),
+        (Some(Scene::Fitted), -1.0),
+    ] {
+        let options = StreamOptions {
+            approximation: Approximation {
+                scene,
+                ..Approximation::default()
+            },
+            ..StreamOptions::default()
+        };
+        let frames: Vec<_> = client
+            .stream("scenes", &options)
+            .await
+            .unwrap()
+            .collect()
+            .await;
+        let set = &frames[0].as_ref().unwrap().gaussians;
+        assert_eq!(set.positions()[0][0], x, "{scene:?}");
     }
 }
 

@@ -7,8 +7,9 @@
 use std::sync::{Arc, Mutex};
 
 use c4g_client::{
-    Client, Precision, RefineRequest, RenderRequest, Sampler, TrajectoryPreset, UploadOptions,
-    UploadSource,
+    Approximation, Client, ExportFormat, ExportOptions, FitPreset, FitRequest, GaussianFormat,
+    Precision, RefineRequest, RenderRequest, Sampler, Scene, TrackQuery, TrackRequest,
+    TrajectoryPreset, UploadOptions, UploadSource,
 };
 use futures_util::StreamExt;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -435,4 +436,198 @@ async fn job_events_of_an_unknown_job_are_one_error() {
     assert_eq!(items.len(), 1);
     let err = items.into_iter().next().unwrap().unwrap_err();
     assert_eq!(err.kind(), Some("not_found"));
+}
+
+const FIT_JOB: &str = r#"{"id": "job-02", "kind": "fit", "clip_id": "3f2a", "state": "running",
+ "attempt": 1, "max_attempts": 3, "worker": "f1", "error": null, "history": [],
+ "progress": {"step": 4, "steps": 8, "stage": "fitting", "loss": 0.25, "holdout_psnr": 19.5,
+  "gaussians": 900, "elapsed_s": 1.5},
+ "request": {"preset": "fast"}, "result_frames": 0, "seconds": null, "created_at": 1,
+ "updated_at": 1, "cancel_requested": false}"#;
+
+#[tokio::test]
+async fn fit_posts_the_request_and_reads_the_fit_job_with_its_progress() {
+    let (client, server) = fake(
+        "202 Accepted",
+        &[
+            ("content-type", "application/json"),
+            ("location", "/v1/jobs/job-02"),
+        ],
+        FIT_JOB.into(),
+    )
+    .await;
+    let request = FitRequest {
+        preset: Some(FitPreset::Fast),
+        steps: Some(8),
+        resolution: Some(32),
+        max_frames: Some(8),
+        refine_cameras: Some(false),
+        ..FitRequest::default()
+    };
+    let job = client.fit("3f2a", &request).await.unwrap();
+    let recorded = server.await.unwrap();
+
+    assert_eq!(recorded.request_line(), "POST /v1/clips/3f2a/fit HTTP/1.1");
+    let body: serde_json::Value = serde_json::from_slice(&recorded.body).unwrap();
+    assert_eq!(
+        body,
+        serde_json::json!({"preset": "fast", "steps": 8, "resolution": 32, "max_frames": 8,
+                           "refine_cameras": false})
+    );
+    assert!(job.is_fit() && !job.is_terminal());
+    let progress = job.progress.clone().unwrap();
+    assert_eq!((progress.step, progress.steps), (4, 8));
+    assert_eq!(progress.loss, Some(0.25));
+    assert_eq!(progress.holdout_psnr, Some(19.5));
+    assert_eq!(progress.gaussians, Some(900));
+    assert_eq!(progress.elapsed_s, Some(1.5));
+    let original: serde_json::Value = serde_json::from_str(FIT_JOB).unwrap();
+    assert_eq!(serde_json::to_value(&job).unwrap(), original);
+}
+
+#[tokio::test]
+async fn a_fit_answered_other_than_202_is_malformed() {
+    let (client, server) = fake("200 OK", &[], FIT_JOB.into()).await;
+    let err = client
+        .fit("3f2a", &FitRequest::default())
+        .await
+        .unwrap_err();
+    server.await.unwrap();
+    assert!(matches!(err, c4g_client::Error::Malformed(_)), "{err}");
+}
+
+#[tokio::test]
+async fn a_clip_lists_its_fitted_scene_and_none_without_one() {
+    let record = serde_json::json!({
+        "id": "3f2a", "model": "c4g-tiny", "state": "ready", "context_times": [0.0, 0.6],
+        "fitted": {"job_id": "job-02", "preset": "fast", "gaussians": 900,
+                   "static_gaussians": 700, "keyframes": [0.0, 0.3, 0.6], "steps": 8,
+                   "seconds": 2.5, "frames": 8, "resolution": [32, 32],
+                   "holdout_frames": [3, 7], "holdout_times": [0.3, 0.7],
+                   "holdout_psnr": 21.0, "holdout_psnr_feed_forward": 16.0,
+                   "train_psnr": 22.0, "stopped_early": false, "created_at": 5}
+    });
+    let (client, server) = fake("200 OK", &[], record.to_string().into()).await;
+    let clip = client.clip("3f2a").await.unwrap();
+    server.await.unwrap();
+    let fitted = clip.fitted.clone().unwrap();
+    assert_eq!(fitted.job_id, "job-02");
+    assert_eq!(fitted.keyframes, [0.0, 0.3, 0.6]);
+    assert_eq!(fitted.holdout_gain(), Some(5.0));
+    assert_eq!(serde_json::to_value(&clip).unwrap(), record);
+
+    let (client, server) = fake(
+        "200 OK",
+        &[],
+        br#"{"id": "3f2a", "context_times": [0.0]}"#.to_vec(),
+    )
+    .await;
+    let clip = client.clip("3f2a").await.unwrap();
+    server.await.unwrap();
+    assert!(clip.fitted.is_none());
+    assert!(serde_json::to_value(&clip).unwrap().get("fitted").is_none());
+}
+
+#[tokio::test]
+async fn renders_exports_and_tracks_send_the_scene_and_read_which_served() {
+    let fitted = Approximation {
+        scene: Some(Scene::Fitted),
+        ..Approximation::default()
+    };
+    let (client, server) = fake(
+        "200 OK",
+        &[("content-type", "image/png"), ("x-c4g-scene", "fitted")],
+        b"\x89PNG".to_vec(),
+    )
+    .await;
+    let request = RenderRequest {
+        t: Some(0.5),
+        approximation: fitted,
+        ..RenderRequest::default()
+    };
+    let rendered = client.render("3f2a", &request).await.unwrap();
+    let body: serde_json::Value = serde_json::from_slice(&server.await.unwrap().body).unwrap();
+    assert_eq!(body, serde_json::json!({"t": 0.5, "scene": "fitted"}));
+    assert_eq!(rendered.scene, Some(Scene::Fitted));
+
+    let (client, server) = fake(
+        "200 OK",
+        &[("x-c4g-sets", "2"), ("x-c4g-scene", "feed-forward")],
+        b"PK".to_vec(),
+    )
+    .await;
+    let options = ExportOptions {
+        approximation: Approximation {
+            scene: Some(Scene::FeedForward),
+            ..Approximation::default()
+        },
+        ..ExportOptions::default()
+    };
+    let export = client
+        .export("3f2a", ExportFormat::PlyZip, &options)
+        .await
+        .unwrap();
+    let body: serde_json::Value = serde_json::from_slice(&server.await.unwrap().body).unwrap();
+    assert_eq!(
+        body,
+        serde_json::json!({"format": "ply_zip", "scene": "feed-forward"})
+    );
+    assert_eq!((export.sets, export.scene), (2, Some(Scene::FeedForward)));
+
+    let answer = serde_json::json!({"tracker": "gaussians", "width": 4, "height": 4,
+                                    "times": [0.5], "tracks": []});
+    let (client, server) = fake(
+        "200 OK",
+        &[
+            ("content-type", "application/json"),
+            ("x-c4g-scene", "fitted"),
+        ],
+        answer.to_string().into(),
+    )
+    .await;
+    let request = TrackRequest {
+        queries: vec![TrackQuery {
+            t: 0.5,
+            x: 1.0,
+            y: 2.0,
+        }],
+        approximation: fitted,
+        ..TrackRequest::default()
+    };
+    let tracks = client.tracks("3f2a", &request).await.unwrap();
+    let body: serde_json::Value = serde_json::from_slice(&server.await.unwrap().body).unwrap();
+    assert_eq!(body["scene"], "fitted");
+    assert_eq!(tracks.scene, Some(Scene::Fitted));
+
+    // A server that does not say leaves it unknown.
+    let (client, server) = fake("200 OK", &[("content-type", "image/png")], vec![]).await;
+    let rendered = client
+        .render("3f2a", &RenderRequest::default())
+        .await
+        .unwrap();
+    server.await.unwrap();
+    assert_eq!(rendered.scene, None);
+}
+
+#[tokio::test]
+async fn decodes_send_the_scene_they_ask_for() {
+    let (client, server) = fake(
+        "200 OK",
+        &[("x-c4g-scene", "fitted")],
+        br#"{"frames": []}"#.to_vec(),
+    )
+    .await;
+    let approximation = Approximation {
+        scene: Some(Scene::Fitted),
+        ..Approximation::default()
+    };
+    client
+        .gaussians_raw_approximated("3f2a", &[0.5], GaussianFormat::Json, &approximation)
+        .await
+        .unwrap();
+    let body: serde_json::Value = serde_json::from_slice(&server.await.unwrap().body).unwrap();
+    assert_eq!(
+        body,
+        serde_json::json!({"times": [0.5], "format": "json", "precision": "f32", "scene": "fitted"})
+    );
 }

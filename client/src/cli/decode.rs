@@ -32,10 +32,11 @@ impl From<Format> for GaussianFormat {
     }
 }
 
-/// The speed/accuracy trade (decode, render, stream): a quality preset, and the knobs it stands
-/// for, which the flags below override. Keyframes: the server decodes exact sets at keyframes
-/// and interpolates the rest, for fewer decoder runs (at most one mode). Pruning: it drops the
-/// Gaussians that change nothing visible.
+/// The speed/accuracy trade (decode, export, render, stream, track): a quality preset, and the
+/// knobs it stands for, which the flags below override. Keyframes: the server decodes exact sets
+/// at keyframes and interpolates the rest, for fewer decoder runs (at most one mode). Pruning: it
+/// drops the Gaussians that change nothing visible. And which scene serves the request: the
+/// model's feed-forward answer or the clip's fitted scene.
 #[derive(Debug, Clone, clap::Args)]
 pub(super) struct ApproximationArgs {
     /// A named trade: exact (the server's default), balanced (within 0.1 dB of exact on the

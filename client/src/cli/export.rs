@@ -79,6 +79,7 @@ async fn export_range(cx: &Context, args: Args, format: ExportFormat) -> anyhow:
             "format": format.name(),
             "sets": export.sets,
             "bytes": export.bytes.len(),
+            "scene": export.scene,
         });
         if let Some((max, rms)) = export.fit_position_error {
             line["fit_position_error"] = json!({ "max": max, "rms": rms });
@@ -89,8 +90,12 @@ async fn export_range(cx: &Context, args: Args, format: ExportFormat) -> anyhow:
             Some((max, rms)) => format!(", fitted: positions within {max:.2e} (rms {rms:.2e})"),
             None => String::new(),
         };
+        let scene = match export.scene {
+            Some(scene) => format!(", {} scene", scene.name()),
+            None => String::new(),
+        };
         emit_line(format!(
-            "wrote {} ({format}, {} sets, {}{fit})",
+            "wrote {} ({format}, {} sets, {}{scene}{fit})",
             args.output.display(),
             export.sets,
             HumanBytes(export.bytes.len() as u64)

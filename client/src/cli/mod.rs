@@ -5,6 +5,8 @@ mod cameras;
 mod decode;
 mod delete;
 mod export;
+mod fit;
+mod follow;
 mod info;
 mod jobs;
 mod refine;
@@ -22,8 +24,8 @@ use c4g_client::{Client, Clip, Model};
 use clap::{Parser, Subcommand};
 use indicatif::HumanBytes;
 
-/// Talk to a c4g server: upload a clip, then decode, render and stream its 3D Gaussians, and
-/// refine novel views of it.
+/// Talk to a c4g server: upload a clip, then decode, render and stream its 3D Gaussians, fit its
+/// scene to its own frames, and refine novel views of it.
 #[derive(Debug, Parser)]
 #[command(name = "c4g", version)]
 pub struct Cli {
@@ -74,14 +76,18 @@ enum Command {
     /// Select the Gaussians whose lifted feature is like a clicked pixel's (or a given feature),
     /// and their masks at other times (a package with a feature decoder).
     Segment(segment::Args),
+    /// Fit the clip's scene to its own frames (a c4g-fitter worker runs it): submit a job,
+    /// follow it, and print the fitted scene's held-out PSNR beside the feed-forward answer's.
+    /// Requests then serve the fitted scene (--scene picks one).
+    Fit(fit::Args),
     /// Refine novel views with the video diffusion model: submit a job, follow it, and download
     /// the refined video.
     Refine(refine::Args),
-    /// Describe a refinement job.
+    /// Describe a job (a fit or a refinement).
     Job(jobs::JobArgs),
-    /// List the refinement jobs.
+    /// List the jobs (fits and refinements).
     Jobs,
-    /// Cancel a refinement job (a running one stops at its worker's next step).
+    /// Cancel a job (a running one stops at its worker's next step).
     Cancel(jobs::JobArgs),
 }
 
@@ -110,6 +116,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Track(args) => track::run(&cx, args).await,
         Command::Segment(args) => segment::run(&cx, args).await,
         Command::Cameras(args) => cameras::run(&cx, args).await,
+        Command::Fit(args) => fit::run(&cx, args).await,
         Command::Refine(args) => refine::run(&cx, args).await,
         Command::Job(args) => jobs::job(&cx, args).await,
         Command::Jobs => jobs::jobs(&cx).await,
@@ -193,6 +200,15 @@ fn clip_summary(clip: &Clip) -> String {
     }
     if let Some(bytes) = clip.feature_bytes {
         let _ = writeln!(text, "  features  {}", HumanBytes(bytes));
+    }
+    if let Some(fitted) = &clip.fitted {
+        let _ = writeln!(
+            text,
+            "  fitted    {} Gaussians at {} keyframes; held-out {}",
+            fitted.gaussians,
+            fitted.keyframes.len(),
+            fit::held_out_text(fitted)
+        );
     }
     text
 }

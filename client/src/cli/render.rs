@@ -139,9 +139,13 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
             "height": rendered.height,
             "channels": rendered.channels,
             "t": time,
+            "scene": rendered.scene,
         }));
     }
     let mut details = vec![rendered.content_type.clone()];
+    if let Some(scene) = rendered.scene {
+        details.push(format!("{} scene", scene.name()));
+    }
     if let (Some(w), Some(h)) = (rendered.width, rendered.height) {
         details.push(format!("{w}x{h}"));
     }

@@ -1,5 +1,6 @@
 """Fixtures: the package from ``src/`` (no install needed), the real server binary on a free
-port with a throwaway store, c4g-tiny's test clip uploaded once, and the tiny refiner worker.
+port with a throwaway store, c4g-tiny's test clip uploaded once, the tiny refiner worker and a
+fit worker.
 
 The server is the one the end-to-end tests run (``target/debug/c4g-server``, built by
 ``cargo build --workspace --bins``; ``C4G_BIN_DIR`` points elsewhere). It is started from the
@@ -150,6 +151,20 @@ def refiner(server: str, tmp_path: Path) -> Iterator[Process]:
     proc = Process(
         [str(binary("c4g-refiner")), "--server", server, "--name", "w1", "--intra-op-threads", "1"],
         tmp_path / "refiner.log",
+        {},
+    )
+    try:
+        yield proc
+    finally:
+        proc.stop()
+
+
+@pytest.fixture(scope="module")
+def fitter(server: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Process]:
+    """A fit worker (``c4g-fitter``): it takes the server's fit jobs while the module runs."""
+    proc = Process(
+        [str(binary("c4g-fitter")), "--server", server, "--name", "f1"],
+        tmp_path_factory.mktemp("fitter") / "fitter.log",
         {},
     )
     try:

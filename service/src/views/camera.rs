@@ -164,15 +164,17 @@ impl CameraSpec {
             }
         };
         if let Some(i) = self.intrinsics {
-            let focal = SMALLEST_LENGTH..=FOCAL_BOUND;
-            let offset = -FOCAL_BOUND..=FOCAL_BOUND;
+            // Compared in f32, as the values are held: a bound stated in the contract (1e-6)
+            // rounds as the value at that bound does, so the bound itself is accepted.
+            let focal = (SMALLEST_LENGTH as f32)..=(FOCAL_BOUND as f32);
+            let offset = (-FOCAL_BOUND as f32)..=(FOCAL_BOUND as f32);
             for (name, v, range) in [
                 ("fx", i.fx, &focal),
                 ("fy", i.fy, &focal),
                 ("cx", i.cx, &offset),
                 ("cy", i.cy, &offset),
             ] {
-                if !range.contains(&f64::from(v)) {
+                if !range.contains(&v) {
                     return Err(ServiceError::invalid(format!(
                         "intrinsics {name} must be between {:e} and {:e} (fractions of the \
                          image size), got {v}",

@@ -30,10 +30,10 @@ module               what
 ``_grpc``            ``StreamGaussians`` and ``Decode`` over gRPC (extra ``grpc``); ``_proto`` its
                      messages
 ``_upload``          upload bodies: files, folders, bytes, NumPy frames, with progress
-``_records``         :class:`Clip`, :class:`Model`, :class:`Job`, :class:`Export`, :class:`Segment`
-                     (a :class:`Mask` a time)
+``_records``         :class:`Clip` (its :class:`FittedSummary`), :class:`Model`, :class:`Job`,
+                     :class:`Export`, :class:`Segment` (a :class:`Mask` a time)
 ``_camera``          :class:`Camera`, :class:`Intrinsics`, presets :class:`Orbit` ...
-``_approx``          :data:`Quality`, :class:`Keyframes`, :class:`Prune`
+``_approx``          :data:`Quality`, :class:`Keyframes`, :class:`Prune`, :data:`Scene`
 ``_media``           :class:`Image`, :class:`ScalarImage`, :class:`FeatureImage`, :class:`Video`,
                      notebook display
 ``_png``             PNG in and out with NumPy alone
@@ -41,7 +41,7 @@ module               what
 ==================== ==========================================================================
 """
 
-from ._approx import Keyframes, Prune, Quality
+from ._approx import Keyframes, Prune, Quality, Scene
 from ._async_client import AsyncClient
 from ._c4gs import decode as decode_c4gs
 from ._c4gv import C4GVDecoder, IndexEntry
@@ -75,7 +75,7 @@ from ._errors import (
 from ._gsplat import GsplatRender, GsplatUnavailable, gsplat_available, render_with_gsplat
 from ._media import FeatureImage, Image, ScalarImage, Video
 from ._ply import SCALE_FLOOR
-from ._records import Clip, ClipSource, Export, Job, JobProgress, Mask, Model, Segment
+from ._records import Clip, ClipSource, Export, FittedSummary, Job, JobProgress, Mask, Model, Segment
 from ._sets import GaussianSet, TorchGaussianSet, stack
 from ._stream import AsyncSetStream, SetStream
 
@@ -97,6 +97,7 @@ __all__ = [
     "Draining",
     "Export",
     "FeatureImage",
+    "FittedSummary",
     "FormatError",
     "GaussianSet",
     "GsplatRender",
@@ -121,6 +122,7 @@ __all__ = [
     "RetryableError",
     "SCALE_FLOOR",
     "ScalarImage",
+    "Scene",
     "Segment",
     "SetStream",
     "Spiral",

@@ -1,5 +1,6 @@
 """The speed/accuracy options every decoding request takes: a :data:`Quality` preset,
-:class:`Keyframes` and :class:`Prune` (``docs/api.md``: Quality, Keyframes, Pruning).
+:class:`Keyframes` and :class:`Prune` (``docs/api.md``: Quality, Keyframes, Pruning), and the
+:data:`Scene` that serves it (``docs/api.md``: Fitting).
 
 They are passed through to the server as they are: the server owns their meaning, validates
 them and answers a bad one with ``invalid_input`` saying what to change. This module only gives
@@ -13,6 +14,14 @@ from typing import Any, Dict, Literal, Mapping, Optional, Union
 
 #: A named point of the trade: ``exact`` (default), ``balanced``, ``fast``.
 Quality = Literal["exact", "balanced", "fast"]
+
+#: Which scene serves a request: ``auto`` (the server's default: the clip's fitted scene when it
+#: has one and the request asks for no approximation and no features), ``feed-forward`` (the
+#: model's answer) or ``fitted`` (what :meth:`Client.fit <c4g_client.Client.fit>` made).
+Scene = Literal["auto", "feed-forward", "fitted"]
+
+#: The header an answer names the scene that served it in (``feed-forward`` or ``fitted``).
+SCENE_HEADER = "x-c4g-scene"
 
 
 @dataclass(frozen=True)
@@ -78,7 +87,11 @@ class Prune:
     drop_queries: Optional[bool] = None
 
     def to_json(self) -> Dict[str, Any]:
-        fields = {"contribution_px": self.contribution_px, "opacity": self.opacity, "drop_queries": self.drop_queries}
+        fields = {
+            "contribution_px": self.contribution_px,
+            "opacity": self.opacity,
+            "drop_queries": self.drop_queries,
+        }
         return {k: v for k, v in fields.items() if v is not None}
 
 
@@ -87,10 +100,15 @@ PruneLike = Union[Prune, Mapping[str, Any]]
 
 
 def approximation_json(
-    quality: Optional[str], keyframes: Optional[KeyframesLike], prune: Optional[PruneLike]
+    quality: Optional[str],
+    keyframes: Optional[KeyframesLike],
+    prune: Optional[PruneLike],
+    scene: Optional[str] = None,
 ) -> Dict[str, Any]:
     """The request fields for the options given (none for those left out: server defaults)."""
     out: Dict[str, Any] = {}
+    if scene is not None:
+        out["scene"] = scene
     if quality is not None:
         out["quality"] = quality
     if keyframes is not None:

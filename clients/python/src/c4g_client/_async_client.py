@@ -17,7 +17,7 @@ import httpx
 
 from . import _endpoints as ep
 from . import _grpc, _upload
-from ._approx import KeyframesLike, PruneLike
+from ._approx import KeyframesLike, PruneLike, Scene
 from ._camera import CameraLike, TrajectoryLike
 from ._client import Times, default_key, default_url, times_of
 from ._endpoints import ClickLike
@@ -146,6 +146,7 @@ class AsyncClient:
         quality: Optional[str] = ...,
         keyframes: Optional[KeyframesLike] = ...,
         prune: Optional[PruneLike] = ...,
+        scene: Optional[Scene] = ...,
         features: bool = ...,
     ) -> GaussianSet: ...
 
@@ -159,6 +160,7 @@ class AsyncClient:
         quality: Optional[str] = ...,
         keyframes: Optional[KeyframesLike] = ...,
         prune: Optional[PruneLike] = ...,
+        scene: Optional[Scene] = ...,
         features: bool = ...,
     ) -> List[GaussianSet]: ...
 
@@ -171,6 +173,7 @@ class AsyncClient:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
         features: bool = False,
     ) -> Union[GaussianSet, List[GaussianSet]]:
         sets = await self._run(
@@ -181,6 +184,7 @@ class AsyncClient:
                 quality=quality,
                 keyframes=keyframes,
                 prune=prune,
+                scene=scene,
                 features=features,
             )
         )
@@ -196,6 +200,7 @@ class AsyncClient:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
         features: bool = False,
     ) -> bytes:
         return await self._run(
@@ -207,6 +212,7 @@ class AsyncClient:
                 quality=quality,
                 keyframes=keyframes,
                 prune=prune,
+                scene=scene,
                 features=features,
             )
         )
@@ -225,6 +231,7 @@ class AsyncClient:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
     ) -> Export:
         export = await self._run(
             ep.export(
@@ -238,6 +245,7 @@ class AsyncClient:
                 quality=quality,
                 keyframes=keyframes,
                 prune=prune,
+                scene=scene,
             )
         )
         if path is not None:
@@ -257,6 +265,7 @@ class AsyncClient:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
     ) -> AsyncSetStream:
         call = ep.stream(
             clip_id,
@@ -269,6 +278,7 @@ class AsyncClient:
             quality=quality,
             keyframes=keyframes,
             prune=prune,
+            scene=scene,
         )
         return AsyncSetStream(await self._send(call, stream=True))
 
@@ -286,6 +296,7 @@ class AsyncClient:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
     ) -> _grpc.AsyncGrpcSetStream:
         request = _grpc.stream_request(
             clip_id,
@@ -297,6 +308,7 @@ class AsyncClient:
             quality=quality,
             keyframes=keyframes,
             prune=prune,
+            scene=scene,
             compact=None if compact is None else (compact, keyframe_interval),
         )
         return await _grpc.AsyncGrpcSetStream(
@@ -313,6 +325,7 @@ class AsyncClient:
         quality: Optional[str] = ...,
         keyframes: Optional[KeyframesLike] = ...,
         prune: Optional[PruneLike] = ...,
+        scene: Optional[Scene] = ...,
         features: bool = ...,
     ) -> GaussianSet: ...
 
@@ -326,6 +339,7 @@ class AsyncClient:
         quality: Optional[str] = ...,
         keyframes: Optional[KeyframesLike] = ...,
         prune: Optional[PruneLike] = ...,
+        scene: Optional[Scene] = ...,
         features: bool = ...,
     ) -> List[GaussianSet]: ...
 
@@ -338,6 +352,7 @@ class AsyncClient:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
         features: bool = False,
     ) -> Union[GaussianSet, List[GaussianSet]]:
         request = _grpc.decode_request(
@@ -347,6 +362,7 @@ class AsyncClient:
             quality=quality,
             keyframes=keyframes,
             prune=prune,
+            scene=scene,
             features=features,
         )
         sets = await _grpc.adecode(self._channel(), self._api_key, request)
@@ -364,6 +380,7 @@ class AsyncClient:
         format: str = "png",
         quality: Optional[str] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
     ) -> Union[Image, ScalarImage, FeatureImage]:
         return await self._run(
             ep.render(
@@ -376,6 +393,7 @@ class AsyncClient:
                 format=format,
                 quality=quality,
                 prune=prune,
+                scene=scene,
             )
         )
 
@@ -396,6 +414,7 @@ class AsyncClient:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
         path: Optional[PathLike] = None,
     ) -> Video:
         video = await self._run(
@@ -414,6 +433,7 @@ class AsyncClient:
                 quality=quality,
                 keyframes=keyframes,
                 prune=prune,
+                scene=scene,
             )
         )
         if path is not None:
@@ -446,6 +466,28 @@ class AsyncClient:
                 height=height,
             )
         )
+
+    async def fit(
+        self,
+        clip_id: str,
+        *,
+        preset: Optional[str] = None,
+        steps: Optional[int] = None,
+        resolution: Optional[int] = None,
+        max_gaussians: Optional[int] = None,
+        keyframe_every: Optional[int] = None,
+        holdout_every: Optional[int] = None,
+        refine_cameras: Optional[bool] = None,
+        time_budget_s: Optional[float] = None,
+        seed: Optional[int] = None,
+        max_frames: Optional[int] = None,
+        **extra: Any,
+    ) -> Job:
+        fields = dict(locals())
+        for name in ("self", "clip_id", "extra"):
+            fields.pop(name)
+        fields.update(extra)
+        return await self._run(ep.fit(clip_id, fields))
 
     async def refine(
         self,

@@ -17,7 +17,7 @@ import httpx
 
 from . import _endpoints as ep
 from . import _grpc, _upload
-from ._approx import KeyframesLike, PruneLike
+from ._approx import KeyframesLike, PruneLike, Scene
 from ._camera import CameraLike, TrajectoryLike
 from ._endpoints import ClickLike
 from ._errors import StreamInterrupted, TransportError
@@ -190,6 +190,7 @@ class Client:
         quality: Optional[str] = ...,
         keyframes: Optional[KeyframesLike] = ...,
         prune: Optional[PruneLike] = ...,
+        scene: Optional[Scene] = ...,
         features: bool = ...,
     ) -> GaussianSet: ...
 
@@ -203,6 +204,7 @@ class Client:
         quality: Optional[str] = ...,
         keyframes: Optional[KeyframesLike] = ...,
         prune: Optional[PruneLike] = ...,
+        scene: Optional[Scene] = ...,
         features: bool = ...,
     ) -> List[GaussianSet]: ...
 
@@ -215,6 +217,7 @@ class Client:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
         features: bool = False,
     ) -> Union[GaussianSet, List[GaussianSet]]:
         """The Gaussians at one time (a :class:`GaussianSet`) or several (a list, in the order
@@ -222,7 +225,11 @@ class Client:
         on the wire (values rounded to the nearest half); ``quality``, ``keyframes`` and
         ``prune`` trade accuracy for speed (docs/api.md). ``features=True`` adds each
         Gaussian's lifted feature vector (``.features``, ``(N, F)``), on a package with a
-        feature decoder (:class:`~c4g_client.Unsupported` otherwise)."""
+        feature decoder (:class:`~c4g_client.Unsupported` otherwise). ``scene`` picks the
+        scene: ``"auto"`` (the server's default: the clip's fitted scene when it has one and
+        nothing above asks for an approximation or features), ``"feed-forward"`` or
+        ``"fitted"`` (:class:`~c4g_client.NotFound` when the clip has none; every method that
+        takes sets takes it alike)."""
         sets = self._run(
             ep.decode(
                 clip_id,
@@ -231,6 +238,7 @@ class Client:
                 quality=quality,
                 keyframes=keyframes,
                 prune=prune,
+                scene=scene,
                 features=features,
             )
         )
@@ -246,6 +254,7 @@ class Client:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
         features: bool = False,
     ) -> bytes:
         """The gaussians endpoint's bytes as the server sent them (``json``, ``binary``,
@@ -260,6 +269,7 @@ class Client:
                 quality=quality,
                 keyframes=keyframes,
                 prune=prune,
+                scene=scene,
                 features=features,
             )
         )
@@ -278,6 +288,7 @@ class Client:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
     ) -> Export:
         """A file other viewers open: ``ply_zip``, ``spz_zip`` or ``splatv`` over a time range
         (default the whole span at the clip's frame rate), or ``ply`` / ``splat`` of one time
@@ -294,6 +305,7 @@ class Client:
                 quality=quality,
                 keyframes=keyframes,
                 prune=prune,
+                scene=scene,
             )
         )
         if path is not None:
@@ -313,6 +325,7 @@ class Client:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
     ) -> SetStream:
         """The sets over a time range as the compact 4D stream (C4GV), decoded as they
         arrive: iterate it (or use ``with``). Positions are within ``position_error`` (default
@@ -328,6 +341,7 @@ class Client:
             quality=quality,
             keyframes=keyframes,
             prune=prune,
+            scene=scene,
         )
         return SetStream(self._send(call, stream=True))
 
@@ -345,6 +359,7 @@ class Client:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
     ) -> _grpc.GrpcSetStream:
         """The sets over a time range over gRPC (``StreamGaussians``; the ``grpc`` extra):
         packed ``f32`` / ``f16`` sets, or with ``compact=position_error`` the C4GV stream."""
@@ -358,6 +373,7 @@ class Client:
             quality=quality,
             keyframes=keyframes,
             prune=prune,
+            scene=scene,
             compact=None if compact is None else (compact, keyframe_interval),
         )
         return _grpc.GrpcSetStream(self._channel(), self._api_key, request, compact is not None)
@@ -372,6 +388,7 @@ class Client:
         quality: Optional[str] = ...,
         keyframes: Optional[KeyframesLike] = ...,
         prune: Optional[PruneLike] = ...,
+        scene: Optional[Scene] = ...,
         features: bool = ...,
     ) -> GaussianSet: ...
 
@@ -385,6 +402,7 @@ class Client:
         quality: Optional[str] = ...,
         keyframes: Optional[KeyframesLike] = ...,
         prune: Optional[PruneLike] = ...,
+        scene: Optional[Scene] = ...,
         features: bool = ...,
     ) -> List[GaussianSet]: ...
 
@@ -397,6 +415,7 @@ class Client:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
         features: bool = False,
     ) -> Union[GaussianSet, List[GaussianSet]]:
         """:meth:`decode` over gRPC (``Decode``; the ``grpc`` extra): the same sets, with the
@@ -408,6 +427,7 @@ class Client:
             quality=quality,
             keyframes=keyframes,
             prune=prune,
+            scene=scene,
             features=features,
         )
         sets = _grpc.decode(self._channel(), self._api_key, request)
@@ -427,6 +447,7 @@ class Client:
         format: str = "png",
         quality: Optional[str] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
     ) -> Union[Image, ScalarImage, FeatureImage]:
         """One view at time ``t`` (default the span's start) from ``camera`` (default the first
         context camera): ``png`` gives an :class:`Image` (``.array`` is ``(H, W, 3)`` uint8),
@@ -434,7 +455,8 @@ class Client:
         feature decoder, ``features`` gives a :class:`FeatureImage` (``(H, W, F)`` ``float32``:
         each pixel its Gaussians' features composited like colour, no background) and
         ``features_pca`` an :class:`Image` (the features coloured by the clip's PCA basis,
-        which is the same at every time and from every camera)."""
+        which is the same at every time and from every camera). Each says the scene that
+        rendered it (``.scene``: ``feed-forward`` or ``fitted``; ``scene=`` asks for one)."""
         return self._run(
             ep.render(
                 clip_id,
@@ -446,6 +468,7 @@ class Client:
                 format=format,
                 quality=quality,
                 prune=prune,
+                scene=scene,
             )
         )
 
@@ -466,6 +489,7 @@ class Client:
         quality: Optional[str] = None,
         keyframes: Optional[KeyframesLike] = None,
         prune: Optional[PruneLike] = None,
+        scene: Optional[Scene] = None,
         path: Optional[PathLike] = None,
     ) -> Video:
         """An MP4 along a preset (:class:`Orbit`, :class:`Spiral`, :class:`Dolly`) or explicit
@@ -486,6 +510,7 @@ class Client:
                 quality=quality,
                 keyframes=keyframes,
                 prune=prune,
+                scene=scene,
             )
         )
         if path is not None:
@@ -527,6 +552,37 @@ class Client:
                 height=height,
             )
         )
+
+    # -- fitting ----------------------------------------------------------------------------
+
+    def fit(
+        self,
+        clip_id: str,
+        *,
+        preset: Optional[str] = None,
+        steps: Optional[int] = None,
+        resolution: Optional[int] = None,
+        max_gaussians: Optional[int] = None,
+        keyframe_every: Optional[int] = None,
+        holdout_every: Optional[int] = None,
+        refine_cameras: Optional[bool] = None,
+        time_budget_s: Optional[float] = None,
+        seed: Optional[int] = None,
+        max_frames: Optional[int] = None,
+        **extra: Any,
+    ) -> Job:
+        """Queues a fit of the clip's scene to its own frames (a ``c4g-fitter`` worker runs
+        it); returns the queued :class:`Job` (``kind`` ``fit``). ``preset`` is ``"fast"``,
+        ``"default"`` (the server's) or ``"best"``; the other fields override its values
+        (docs/api.md, Fitting); ``extra`` passes fields this version does not name. Follow it
+        with :meth:`wait` or :meth:`follow` (its progress has ``loss``, ``holdout_psnr``,
+        ``gaussians``, ``elapsed_s``); once it is done, :meth:`clip` lists the fitted scene
+        (:attr:`Clip.fitted <c4g_client.Clip.fitted>`) and requests serve it by default."""
+        fields = dict(locals())
+        for name in ("self", "clip_id", "extra"):
+            fields.pop(name)
+        fields.update(extra)
+        return self._run(ep.fit(clip_id, fields))
 
     # -- refinement -------------------------------------------------------------------------
 

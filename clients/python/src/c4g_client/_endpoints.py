@@ -16,7 +16,7 @@ import httpx
 import numpy as np
 
 from . import _c4gs
-from ._approx import KeyframesLike, PruneLike, approximation_json
+from ._approx import SCENE_HEADER, KeyframesLike, PruneLike, approximation_json
 from ._camera import CameraLike, TrajectoryLike, camera_json, trajectory_json
 from ._errors import FormatError
 from ._http import Call, read_json
@@ -92,6 +92,7 @@ def gaussians(
     keyframes: Optional[KeyframesLike] = None,
     prune: Optional[PruneLike] = None,
     features: bool = False,
+    scene: Optional[str] = None,
 ) -> Call[bytes]:
     """The gaussians endpoint's bytes in any of its formats (``json``, ``binary``, ``ply``,
     ``splat``); ``features`` adds each Gaussian's lifted feature vector (JSON ``features``,
@@ -101,7 +102,7 @@ def gaussians(
         body["precision"] = precision
     if features:
         body["features"] = True
-    body.update(approximation_json(quality, keyframes, prune))
+    body.update(approximation_json(quality, keyframes, prune, scene))
     return Call("POST", ["v1", "clips", clip_id, "gaussians"], lambda r: r.content, json=body)
 
 
@@ -114,6 +115,7 @@ def decode(
     keyframes: Optional[KeyframesLike] = None,
     prune: Optional[PruneLike] = None,
     features: bool = False,
+    scene: Optional[str] = None,
 ) -> Call[List[GaussianSet]]:
     """Sets as arrays, fetched as ``C4GS`` (binary): ``f32`` exact, ``f16`` half the bytes;
     with ``features``, version 2, whose sets carry their lifted features."""
@@ -126,6 +128,7 @@ def decode(
         keyframes=keyframes,
         prune=prune,
         features=features,
+        scene=scene,
     )
     return Call(call.method, call.path, lambda r: _c4gs.decode(r.content), json=call.json)
 
@@ -151,23 +154,28 @@ def export(
     quality: Optional[str] = None,
     keyframes: Optional[KeyframesLike] = None,
     prune: Optional[PruneLike] = None,
+    scene: Optional[str] = None,
 ) -> Call[Export]:
     """A file: a time range as ``ply_zip``, ``spz_zip`` or ``splatv`` (export endpoint), or one
     time as ``ply`` or ``splat`` (the gaussians endpoint, which holds those)."""
     if format in ("ply", "splat"):
         if t is None:
             raise ValueError(f"a .{format} holds one set: give its time t")
-        call = gaussians(clip_id, [t], format=format, quality=quality, keyframes=keyframes, prune=prune)
+        call = gaussians(
+            clip_id, [t], format=format, quality=quality, keyframes=keyframes, prune=prune, scene=scene
+        )
         return Call(
             call.method,
             call.path,
-            lambda r: Export(r.content, format, f"{clip_id[:12]}.{format}", 1, None),
+            lambda r: Export(
+                r.content, format, f"{clip_id[:12]}.{format}", 1, None, r.headers.get(SCENE_HEADER)
+            ),
             json=call.json,
         )
     if format not in RANGE_FORMATS:
         raise ValueError(f"unknown export format {format!r}: one of {RANGE_FORMATS + ('ply', 'splat')}")
     body = _drop_none({"format": format, "start": start, "end": end, "step": step, "fps": fps})
-    body.update(approximation_json(quality, keyframes, prune))
+    body.update(approximation_json(quality, keyframes, prune, scene))
 
     def parse(r: httpx.Response) -> Export:
         sets = r.headers.get("x-c4g-sets")
@@ -177,6 +185,7 @@ def export(
             filename_from(r.headers.get("content-disposition")),
             int(sets) if sets and sets.isdigit() else None,
             fit_error_from(r.headers.get("x-c4g-fit-position-error")),
+            r.headers.get(SCENE_HEADER),
         )
 
     return Call("POST", ["v1", "clips", clip_id, "export"], parse, json=body)
@@ -197,6 +206,7 @@ def stream(
     quality: Optional[str] = None,
     keyframes: Optional[KeyframesLike] = None,
     prune: Optional[PruneLike] = None,
+    scene: Optional[str] = None,
 ) -> Call[None]:
     """The C4GV stream's request; its chunked body is read by the clients as it arrives."""
     body = _drop_none(
@@ -209,7 +219,7 @@ def stream(
             "keyframe_interval": keyframe_interval,
         }
     )
-    body.update(approximation_json(quality, keyframes, prune))
+    body.update(approximation_json(quality, keyframes, prune, scene))
     return Call("POST", ["v1", "clips", clip_id, "stream"], lambda r: None, json=body)
 
 
@@ -227,6 +237,7 @@ def render(
     format: str = "png",
     quality: Optional[str] = None,
     prune: Optional[PruneLike] = None,
+    scene: Optional[str] = None,
 ) -> Call[Union[Image, ScalarImage, FeatureImage]]:
     """One view: a PNG :class:`Image` (``png``, ``features_pca``), raw ``f32`` ``depth`` /
     ``alpha`` as a :class:`ScalarImage`, or raw ``f32`` ``features`` as a
@@ -243,25 +254,28 @@ def render(
             "format": format,
         }
     )
-    body.update(approximation_json(quality, None, prune))
+    body.update(approximation_json(quality, None, prune, scene))
 
     def parse(r: httpx.Response) -> Union[Image, ScalarImage, FeatureImage]:
         time = _header_float(r, "x-c4g-time")
+        served = r.headers.get(SCENE_HEADER)
         if format in ("png", "features_pca"):
-            return Image(r.content, time)
+            return Image(r.content, time, served)
         w, h = int(r.headers.get("x-c4g-width", 0)), int(r.headers.get("x-c4g-height", 0))
         if format == "features":
-            return _feature_image(r, w, h, time)
+            return _feature_image(r, w, h, time, served)
         if len(r.content) != 4 * w * h:
             raise FormatError(f"a {w}x{h} {format} render is {4 * w * h} bytes; got {len(r.content)}")
         return ScalarImage(
-            np.frombuffer(r.content, dtype="<f4").reshape(h, w).astype(np.float32), format, time
+            np.frombuffer(r.content, dtype="<f4").reshape(h, w).astype(np.float32), format, time, served
         )
 
     return Call("POST", ["v1", "clips", clip_id, "render"], parse, json=body)
 
 
-def _feature_image(r: httpx.Response, w: int, h: int, time: Optional[float]) -> FeatureImage:
+def _feature_image(
+    r: httpx.Response, w: int, h: int, time: Optional[float], scene: Optional[str]
+) -> FeatureImage:
     """A raw feature render: ``X-C4G-Channels`` floats a pixel, checked against the length."""
     channels = r.headers.get("x-c4g-channels", "")
     if not channels.isdigit() or int(channels) == 0:
@@ -271,7 +285,9 @@ def _feature_image(r: httpx.Response, w: int, h: int, time: Optional[float]) -> 
         raise FormatError(
             f"a {w}x{h} features render of {f} channels is {4 * w * h * f} bytes; got {len(r.content)}"
         )
-    return FeatureImage(np.frombuffer(r.content, dtype="<f4").reshape(h, w, f).astype(np.float32), time)
+    return FeatureImage(
+        np.frombuffer(r.content, dtype="<f4").reshape(h, w, f).astype(np.float32), time, scene
+    )
 
 
 def render_video(
@@ -290,6 +306,7 @@ def render_video(
     quality: Optional[str] = None,
     keyframes: Optional[KeyframesLike] = None,
     prune: Optional[PruneLike] = None,
+    scene: Optional[str] = None,
 ) -> Call[Video]:
     """A video along a preset path (around ``camera``) or explicit ``cameras``, as MP4."""
     if (trajectory is None) == (cameras is None):
@@ -309,11 +326,11 @@ def render_video(
             "format": "mp4",
         }
     )
-    body.update(approximation_json(quality, keyframes, prune))
+    body.update(approximation_json(quality, keyframes, prune, scene))
     return Call(
         "POST",
         ["v1", "clips", clip_id, "render"],
-        lambda r: Video(r.content, r.headers.get("content-type", "video/mp4")),
+        lambda r: Video(r.content, r.headers.get("content-type", "video/mp4"), r.headers.get(SCENE_HEADER)),
         json=body,
     )
 
@@ -390,6 +407,34 @@ def refine(clip_id: str, request: Mapping[str, Any]) -> Call[Job]:
         return Job.from_json(read_json(r))
 
     return Call("POST", ["v1", "clips", clip_id, "refine"], parse, json=body)
+
+
+#: The fields of a fit request (docs/api.md, Fitting); the preset's value stands for one left out.
+FIT_FIELDS = (
+    "preset",
+    "steps",
+    "resolution",
+    "max_gaussians",
+    "keyframe_every",
+    "holdout_every",
+    "refine_cameras",
+    "time_budget_s",
+    "seed",
+    "max_frames",
+)
+
+
+def fit(clip_id: str, request: Mapping[str, Any]) -> Call[Job]:
+    """Queue a fit of the clip's scene to its own frames; ``request`` holds docs/api.md's
+    fields (those left ``None`` are not sent: the preset's values stand for them)."""
+    body = _drop_none(request)
+
+    def parse(r: httpx.Response) -> Job:
+        if r.status_code != 202:
+            raise FormatError(f"a fit is answered 202 Accepted, not {r.status_code}")
+        return Job.from_json(read_json(r))
+
+    return Call("POST", ["v1", "clips", clip_id, "fit"], parse, json=body)
 
 
 def job(job_id: str) -> Call[Job]:

@@ -72,6 +72,7 @@ def stream_request(
     keyframes: Optional[KeyframesLike] = None,
     prune: Optional[PruneLike] = None,
     compact: Optional[Tuple[float, int]] = None,
+    scene: Optional[str] = None,
 ) -> Any:
     """The ``StreamGaussiansRequest`` for these options (``compact``: position error and
     keyframe interval, 0 for the server's defaults)."""
@@ -87,7 +88,7 @@ def stream_request(
         request.step = step
     if fps is not None:
         request.fps = fps
-    _set_decoding(pb, request, precision, quality, keyframes, prune)
+    _set_decoding(pb, request, precision, quality, keyframes, prune, scene)
     if compact is not None:
         request.compact.CopyFrom(
             pb.CompactStream(position_error=compact[0], keyframe_interval=int(compact[1]))
@@ -104,11 +105,12 @@ def decode_request(
     keyframes: Optional[KeyframesLike] = None,
     prune: Optional[PruneLike] = None,
     features: bool = False,
+    scene: Optional[str] = None,
 ) -> Any:
     """The ``DecodeRequest`` for these options."""
     _, pb = _modules()
     request = pb.DecodeRequest(clip_id=clip_id, times=[float(t) for t in times], features=features)
-    _set_decoding(pb, request, precision, quality, keyframes, prune)
+    _set_decoding(pb, request, precision, quality, keyframes, prune, scene)
     return request
 
 
@@ -119,8 +121,10 @@ def _set_decoding(
     quality: Optional[str],
     keyframes: Optional[KeyframesLike],
     prune: Optional[PruneLike],
+    scene: Optional[str],
 ) -> None:
-    """The fields ``StreamGaussiansRequest`` and ``DecodeRequest`` share, set on ``request``."""
+    """The fields ``StreamGaussiansRequest`` and ``DecodeRequest`` share, set on ``request``
+    (``scene`` left out is the proto's empty string: ``auto``)."""
     if precision not in _PRECISION:
         raise ValueError(f"unknown precision {precision!r} (f32 or f16)")
     request.precision = _PRECISION[precision]
@@ -133,6 +137,8 @@ def _set_decoding(
     if prune is not None:
         fields = prune.to_json() if isinstance(prune, Prune) else dict(prune)
         request.prune.CopyFrom(pb.Prune(**fields))
+    if scene is not None:
+        request.scene = scene
 
 
 def _keyframes(pb: Any, keyframes: KeyframesLike) -> Any:
@@ -225,12 +231,15 @@ async def adecode(channel: Any, api_key: Optional[str], request: Any) -> List[Ga
 
 
 class _Frames:
-    """Turns the stream's messages into sets: packed columns, or pieces of one C4GV stream."""
+    """Turns the stream's messages into sets: packed columns, or pieces of one C4GV stream; and
+    keeps the scene the messages say serves the stream."""
 
     def __init__(self, compact: bool) -> None:
         self._decoder = C4GVDecoder() if compact else None
+        self.scene: Optional[str] = None
 
     def push(self, message: Any) -> List[GaussianSet]:
+        self.scene = message.scene or self.scene
         if self._decoder is None:
             return [set_of(message)]
         self._decoder.feed(message.c4gv)
@@ -276,6 +285,12 @@ class GrpcSetStream:
                 self._ended = True
                 raise error_from(e) from None
             self._pending.extend(self._frames.push(message))
+
+    @property
+    def scene(self) -> Optional[str]:
+        """The scene that serves the stream (``feed-forward`` or ``fitted``), once its first
+        message arrived (the call waits for it)."""
+        return self._frames.scene
 
     def __iter__(self) -> Iterator[GaussianSet]:
         return self
@@ -332,6 +347,12 @@ class AsyncGrpcSetStream:
                 self._ended = True
                 raise error_from(e) from None
             self._pending.extend(self._frames.push(message))
+
+    @property
+    def scene(self) -> Optional[str]:
+        """The scene that serves the stream, once its first message arrived (after
+        :meth:`start`)."""
+        return self._frames.scene
 
     async def start(self) -> AsyncGrpcSetStream:
         """Waits for the first set (so a bad request fails here)."""

@@ -4,7 +4,9 @@
 
 Jupyter calls ``_repr_png_`` / ``_repr_html_`` when a cell's value is one of these, so
 ``client.render(clip, t=0.3)`` alone displays the view. The bytes the server sent are kept as
-they came (``png``, ``data``): saving one writes exactly what the server rendered.
+they came (``png``, ``data``): saving one writes exactly what the server rendered. A render
+also keeps the scene that served it (``scene``: ``feed-forward`` or ``fitted``, the answer's
+``X-C4G-Scene``; ``None`` for what no scene made, such as a context frame).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ class Image:
 
     png: bytes
     time: Optional[float] = None
+    scene: Optional[str] = None
     _pixels: Any = field(default=None, repr=False, compare=False)
 
     @property
@@ -57,8 +60,7 @@ class Image:
         return self.png
 
     def __repr__(self) -> str:
-        when = "" if self.time is None else f", t={self.time:g} s"
-        return f"Image({len(self.png)} bytes of PNG{when})"
+        return f"Image({len(self.png)} bytes of PNG{_when(self.time, self.scene)})"
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,6 +70,7 @@ class ScalarImage:
     array: np.ndarray
     kind: str
     time: Optional[float] = None
+    scene: Optional[str] = None
 
     @property
     def width(self) -> int:
@@ -98,8 +101,7 @@ class ScalarImage:
         return _png.encode(self.to_uint8())
 
     def __repr__(self) -> str:
-        when = "" if self.time is None else f", t={self.time:g} s"
-        return f"ScalarImage({self.kind}, {self.width}x{self.height}{when})"
+        return f"ScalarImage({self.kind}, {self.width}x{self.height}{_when(self.time, self.scene)})"
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,6 +117,7 @@ class FeatureImage:
 
     array: np.ndarray
     time: Optional[float] = None
+    scene: Optional[str] = None
 
     @property
     def width(self) -> int:
@@ -145,8 +148,7 @@ class FeatureImage:
         return _png.encode(self.to_uint8())
 
     def __repr__(self) -> str:
-        when = "" if self.time is None else f", t={self.time:g} s"
-        return f"FeatureImage({self.width}x{self.height}x{self.channels}{when})"
+        return f"FeatureImage({self.width}x{self.height}x{self.channels}{_when(self.time, self.scene)})"
 
 
 @dataclass(frozen=True)
@@ -155,6 +157,7 @@ class Video:
 
     data: bytes
     mime: str = "video/mp4"
+    scene: Optional[str] = None
 
     def save(self, path: PathLike) -> None:
         """Writes the video as the server sent it."""
@@ -173,4 +176,10 @@ class Video:
         return len(self.data)
 
     def __repr__(self) -> str:
-        return f"Video({len(self.data)} bytes of {self.mime})"
+        return f"Video({len(self.data)} bytes of {self.mime}{_when(None, self.scene)})"
+
+
+def _when(time: Optional[float], scene: Optional[str]) -> str:
+    """``, t=0.3 s, fitted``: what a render's repr says of its time and scene."""
+    parts = ([] if time is None else [f"t={time:g} s"]) + ([] if scene is None else [scene])
+    return "".join(f", {part}" for part in parts)

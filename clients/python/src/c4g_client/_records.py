@@ -1,6 +1,7 @@
-"""The server's records as typed values: a :class:`Clip` (an upload), the served
-:class:`Model`, a refinement :class:`Job`, an :class:`Export` file, and a :class:`Segment` (the
-Gaussians a lifted feature selects, with a :class:`Mask` per time).
+"""The server's records as typed values: a :class:`Clip` (an upload, with its
+:class:`FittedSummary` once a fit made one), the served :class:`Model`, a :class:`Job` (a
+refinement or a fit), an :class:`Export` file, and a :class:`Segment` (the Gaussians a lifted
+feature selects, with a :class:`Mask` per time).
 
 Each keeps the JSON it came from in ``raw``, so a field a newer server adds is still there
 before this package names it.
@@ -37,9 +38,75 @@ class ClipSource:
 
 
 @dataclass(frozen=True)
+class FittedSummary:
+    """A clip's fitted scene as its record lists it (``docs/api.md``, Fitting): what a fit made
+    of the clip's own frames, which requests serve by default. ``holdout_psnr`` is the mean PSNR
+    (dB) of the frames the fit never trained on (``holdout_frames``, indices among its
+    ``frames``) at their input cameras, beside ``holdout_psnr_feed_forward``, the model's answer
+    on the same frames; both ``None`` when nothing was held out."""
+
+    job_id: str
+    preset: str
+    gaussians: int
+    static_gaussians: int
+    keyframes: Tuple[float, ...]
+    steps: int
+    seconds: float
+    frames: int
+    resolution: Tuple[int, int]
+    holdout_frames: Tuple[int, ...]
+    holdout_times: Tuple[float, ...]
+    holdout_psnr: Optional[float]
+    holdout_psnr_feed_forward: Optional[float]
+    train_psnr: Optional[float]
+    stopped_early: bool
+    created_at: int
+    raw: Dict[str, Any] = field(repr=False, compare=False)
+
+    @property
+    def holdout_gain(self) -> Optional[float]:
+        """What fitting gained on the held-out frames, dB (``None`` without them)."""
+        if self.holdout_psnr is None or self.holdout_psnr_feed_forward is None:
+            return None
+        return self.holdout_psnr - self.holdout_psnr_feed_forward
+
+    @classmethod
+    def from_json(cls, body: Mapping[str, Any]) -> FittedSummary:
+        def number(name: str) -> Optional[float]:
+            value = body.get(name)
+            return None if value is None else float(value)
+
+        try:
+            width, height = body.get("resolution") or (0, 0)
+            return cls(
+                job_id=body.get("job_id", ""),
+                preset=body.get("preset", ""),
+                gaussians=int(body.get("gaussians", 0)),
+                static_gaussians=int(body.get("static_gaussians", 0)),
+                keyframes=tuple(float(t) for t in body.get("keyframes", ())),
+                steps=int(body.get("steps", 0)),
+                seconds=float(body.get("seconds", 0.0)),
+                frames=int(body.get("frames", 0)),
+                resolution=(int(width), int(height)),
+                holdout_frames=tuple(int(k) for k in body.get("holdout_frames", ())),
+                holdout_times=tuple(float(t) for t in body.get("holdout_times", ())),
+                holdout_psnr=number("holdout_psnr"),
+                holdout_psnr_feed_forward=number("holdout_psnr_feed_forward"),
+                train_psnr=number("train_psnr"),
+                stopped_early=bool(body.get("stopped_early", False)),
+                created_at=int(body.get("created_at", 0)),
+                raw=dict(body),
+            )
+        except (TypeError, ValueError) as e:
+            raise FormatError(f"not a fitted scene's summary ({e!r})") from None
+
+
+@dataclass(frozen=True)
 class Clip:
     """An uploaded, encoded clip. ``span`` is the context span: decode and render take times
-    in ``[span[0], span[1]]`` seconds."""
+    in ``[span[0], span[1]]`` seconds. ``fitted`` summarises its fitted scene once a fit made
+    one (``None`` before; the list of clips leaves it out, :meth:`Client.clip
+    <c4g_client.Client.clip>` says)."""
 
     id: str
     model: str
@@ -51,11 +118,13 @@ class Clip:
     created_at: int
     created: Optional[bool]
     raw: Dict[str, Any] = field(repr=False, compare=False)
+    fitted: Optional[FittedSummary] = None
 
     @classmethod
     def from_json(cls, body: Mapping[str, Any], created: Optional[bool] = None) -> Clip:
         try:
             source = body["source"]
+            fitted = body.get("fitted")
             return cls(
                 id=body["id"],
                 model=body.get("model", ""),
@@ -75,6 +144,7 @@ class Clip:
                 created_at=int(body.get("created_at", 0)),
                 created=body.get("created", created),
                 raw=dict(body),
+                fitted=FittedSummary.from_json(fitted) if isinstance(fitted, Mapping) else None,
             )
         except (KeyError, TypeError, ValueError, IndexError) as e:
             raise FormatError(f"not a clip record ({e!r})") from None
@@ -117,11 +187,35 @@ class Model:
 
 @dataclass(frozen=True)
 class JobProgress:
-    """Where a running job is: ``step`` of ``steps`` in ``stage`` (``denoising``, ...)."""
+    """Where a running job is: ``step`` of ``steps`` in ``stage`` (``denoising``, ...; a fit's
+    ``preparing``, ``fitting``, ``storing``). A fit also reports its ``loss``, the mean PSNR of
+    its held-out frames when it last scored them (``holdout_psnr``, dB), its ``gaussians`` per
+    keyframe and the seconds its worker has spent (``elapsed_s``); ``None`` for a refinement."""
 
     step: int
     steps: int
     stage: str
+    loss: Optional[float] = None
+    holdout_psnr: Optional[float] = None
+    gaussians: Optional[int] = None
+    elapsed_s: Optional[float] = None
+
+    @classmethod
+    def from_json(cls, body: Mapping[str, Any]) -> JobProgress:
+        def number(name: str) -> Optional[float]:
+            value = body.get(name)
+            return None if value is None else float(value)
+
+        gaussians = body.get("gaussians")
+        return cls(
+            int(body.get("step", 0)),
+            int(body.get("steps", 0)),
+            body.get("stage", ""),
+            loss=number("loss"),
+            holdout_psnr=number("holdout_psnr"),
+            gaussians=None if gaussians is None else int(gaussians),
+            elapsed_s=number("elapsed_s"),
+        )
 
     @property
     def fraction(self) -> float:
@@ -130,7 +224,8 @@ class JobProgress:
 
 @dataclass(frozen=True)
 class Job:
-    """A refinement job's record (``GET /v1/jobs/{id}``, and every job event)."""
+    """A job's record (``GET /v1/jobs/{id}``, and every job event): ``kind`` is ``refine`` or
+    ``fit``. A fit's result is the clip's fitted scene (:attr:`Clip.fitted`), not a video."""
 
     id: str
     clip_id: str
@@ -145,6 +240,7 @@ class Job:
     seconds: Optional[float]
     cancel_requested: bool
     raw: Dict[str, Any] = field(repr=False, compare=False)
+    kind: str = ""
 
     @property
     def is_terminal(self) -> bool:
@@ -167,19 +263,14 @@ class Job:
                 attempt=int(body.get("attempt", 0)),
                 max_attempts=int(body.get("max_attempts", 0)),
                 worker=body.get("worker"),
-                progress=(
-                    JobProgress(
-                        int(progress.get("step", 0)), int(progress.get("steps", 0)), progress.get("stage", "")
-                    )
-                    if isinstance(progress, Mapping)
-                    else None
-                ),
+                progress=JobProgress.from_json(progress) if isinstance(progress, Mapping) else None,
                 error=body.get("error"),
                 history=tuple(body.get("history", ())),
                 result_frames=int(body.get("result_frames", 0)),
                 seconds=body.get("seconds"),
                 cancel_requested=bool(body.get("cancel_requested", False)),
                 raw=dict(body),
+                kind=body.get("kind", ""),
             )
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise FormatError(f"not a job record ({e!r})") from None
@@ -188,14 +279,16 @@ class Job:
 @dataclass(frozen=True)
 class Export:
     """A 4D file other viewers open (or a one-time ``.ply`` / ``.splat``): the bytes, the name
-    the server suggests, how many sets it holds, and for ``.splatv`` how far the fit strays
-    from the sets (``fit_error``: ``{"max": ..., "rms": ...}``, scene units)."""
+    the server suggests, how many sets it holds, for ``.splatv`` how far the fit strays from
+    the sets (``fit_error``: ``{"max": ..., "rms": ...}``, scene units), and the scene the sets
+    came from (``scene``: ``feed-forward`` or ``fitted``)."""
 
     data: bytes
     format: str
     filename: Optional[str]
     sets: Optional[int]
     fit_error: Optional[Dict[str, float]]
+    scene: Optional[str] = None
 
     def save(self, path: PathLike) -> None:
         """Writes the file as the server sent it."""
@@ -206,7 +299,8 @@ class Export:
         return len(self.data)
 
     def __repr__(self) -> str:
-        return f"Export({self.format}, {len(self.data)} bytes, {self.sets} sets)"
+        scene = "" if self.scene is None else f", {self.scene}"
+        return f"Export({self.format}, {len(self.data)} bytes, {self.sets} sets{scene})"
 
 
 @dataclass(frozen=True, eq=False)

@@ -15,6 +15,7 @@ from typing import Any, AsyncIterator, Callable, Iterator, List, Optional
 
 import httpx
 
+from ._approx import SCENE_HEADER
 from ._c4gv import C4GVDecoder, Header, IndexEntry
 from ._endpoints import job_from_event, sets_header
 from ._errors import StreamInterrupted
@@ -34,6 +35,8 @@ class _Sets:
         self._pending: List[GaussianSet] = []
         #: How many sets the server said follow (``X-C4G-Sets``).
         self.expected: Optional[int] = sets_header(response)
+        #: The scene that serves the stream (``X-C4G-Scene``: ``feed-forward`` or ``fitted``).
+        self.scene: Optional[str] = response.headers.get(SCENE_HEADER)
 
     @property
     def header(self) -> Optional[Header]:
