@@ -7,7 +7,9 @@
 //!     cargo run --release -p c4g-fit --example fit_clip -- \
 //!         [--frames DIR (../shared/data/bedroom/frames)] [--fps 30] [--name bedroom] \
 //!         [--model models/c4g-tiny] [--presets fast,default] [--random fast] \
-//!         [--steps N (overrides the presets' steps)] [--budget S (their time budget)] [--csv FILE]
+//!         [--steps N (overrides the presets' steps)] [--budget S (their time budget)]
+//!         [--static-pixels P (the static tolerance in pixels)] [--smoothness W] [--resolution PX]
+//!         [--keyframe-every N] [--refine-cameras true] [--csv FILE]
 //!
 //! A video is decoded to a folder of frames beforehand (`ffmpeg -i clip.mp4 DIR/%05d.png`).
 //!
@@ -52,6 +54,11 @@ struct Args {
     random: Vec<Preset>,
     steps: Option<u64>,
     budget: Option<f64>,
+    static_pixels: Option<f64>,
+    smoothness: Option<f64>,
+    refine_cameras: bool,
+    resolution: Option<u32>,
+    keyframe_every: Option<usize>,
     csv: Option<PathBuf>,
 }
 
@@ -73,6 +80,11 @@ fn args() -> Args {
         random: vec![Preset::Fast],
         steps: None,
         budget: None,
+        static_pixels: None,
+        smoothness: None,
+        refine_cameras: false,
+        resolution: None,
+        keyframe_every: None,
         csv: None,
     };
     let argv: Vec<String> = std::env::args().skip(1).collect();
@@ -87,6 +99,11 @@ fn args() -> Args {
             "--random" => a.random = presets(&v),
             "--steps" => a.steps = Some(v.parse().expect("--steps")),
             "--budget" => a.budget = Some(v.parse().expect("--budget")),
+            "--static-pixels" => a.static_pixels = Some(v.parse().expect("--static-pixels")),
+            "--refine-cameras" => a.refine_cameras = v == "true",
+            "--smoothness" => a.smoothness = Some(v.parse().expect("--smoothness")),
+            "--resolution" => a.resolution = Some(v.parse().expect("--resolution")),
+            "--keyframe-every" => a.keyframe_every = Some(v.parse().expect("--keyframe-every")),
             "--csv" => a.csv = Some(v.into()),
             other => panic!("unknown argument {other}"),
         }
@@ -313,6 +330,13 @@ fn main() {
         if let Some(b) = a.budget {
             settings.time_budget_s = Some(b);
         }
+        if let Some(r) = a.resolution {
+            settings.resolution = r;
+        }
+        if let Some(k) = a.keyframe_every {
+            settings.keyframe_every = k;
+        }
+        settings.refine_cameras |= a.refine_cameras;
         let result = run(
             &a,
             &engine,
@@ -376,7 +400,13 @@ fn run(
         cover_frame(&mut start, &frames[0], spacing);
     }
     let prepare_s = prepared.elapsed().as_secs_f64();
-    let options = settings.options(extent);
+    let mut options = settings.options(extent);
+    if let Some(p) = a.static_pixels {
+        options.static_pixels = p;
+    }
+    if let Some(w) = a.smoothness {
+        options.smoothness = w;
+    }
     let (scene, report) = fit(&start, &frames, &options, |_| Control::Continue).unwrap();
     let held: Vec<usize> = holdout_frames(frames.len(), settings.holdout_every)
         .into_iter()

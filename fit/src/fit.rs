@@ -19,8 +19,26 @@
 //! trained on and is scored before and after, so every fit says how well it does on frames it did
 //! not see. Densification (optional) is 3DGS's, run by `c4g_optim::densify` on one representative
 //! row per Gaussian (`densify_keyframes`) whose decisions every keyframe then follows, so N stays
-//! shared and never exceeds [`FitOptions::max_gaussians`]. At the end, Gaussians whose keyframe
-//! positions stay within [`FitOptions::static_tolerance`] of the first keyframe's share one value.
+//! shared and never exceeds [`FitOptions::max_gaussians`].
+//!
+//! **Static Gaussians** are decided during the fit, not after it: each keyframe's copy of a
+//! Gaussian sees only the frames near it, and Adam moves every copy by about its learning rate a
+//! step, so copies of a still Gaussian drift apart by more than a pixel within a hundred steps
+//! and a tolerance applied at the end finds nothing static. Before the first step and every
+//! [`FitOptions::static_every`] steps, a Gaussian whose keyframe positions lie in a ball
+//! [`FitOptions::static_pixels`] pixels wide at its depth (at least
+//! [`FitOptions::static_tolerance`]) is **tied**: its keyframes take their mean, and from then on
+//! they share one gradient (the sum of theirs) and, after every step, one value, so it cannot
+//! drift. Tying before the first step trusts the start's motion, which a weak feed-forward answer
+//! underestimates (a panning camera seen as still moves the whole scene); so the frames get the
+//! last word: a tied Gaussian whose keyframes the frames keep pulling apart, consistently in one
+//! direction (`untie_moving`), is untied for good. Copies made by densification inherit their
+//! parent's state. A fit with one keyframe has every Gaussian static.
+//!
+//! **Cameras** ([`FitOptions::refine_cameras`], `crate::cameras`): each training frame's camera
+//! gets the renderer's seven camera parameters, stepped by their own Adam when the frame is
+//! trained on, with a prior toward the given camera; held-out frames keep their given cameras, so
+//! their score is never bought by moving a camera toward the frame it is scored on.
 //!
 //! After every step the parameters are kept inside a box (positions within ±1e4·extent, scales
 //! up to 100·extent, colours in [0, 1], logits within the optimiser's limits) and non-finite
@@ -39,9 +57,10 @@ use c4g_renderer::{
     BackwardOptions, CpuRasterizer, DifferentiableRasterizer, Rasterizer, RenderGradients,
     RenderOptions,
 };
-use c4g_scene::Camera;
+use c4g_scene::{Camera, GaussianSet};
 
 use crate::backward::{Blend, chain};
+use crate::cameras::CameraRefinement;
 use crate::error::FitError;
 use crate::keyframe_params::KeyframeParams;
 use crate::scene::FittedScene;
@@ -81,9 +100,16 @@ pub struct FitOptions {
     pub prior: f64,
     /// Steps over which the prior fades to 0.
     pub prior_fade_steps: u64,
-    /// A Gaussian whose keyframe positions all stay within this distance (scene units) of its
-    /// first keyframe's is static.
+    /// A Gaussian whose keyframe positions all lie in a ball this wide (scene units) around
+    /// their mean is static (the floor under [`static_pixels`](Self::static_pixels)' tolerance).
     pub static_tolerance: f64,
+    /// … or this many pixels wide at its depth, as the first training frame's camera sees it
+    /// (0: `static_tolerance` alone).
+    pub static_pixels: f64,
+    /// Look for static Gaussians before the first step and every this many steps (0: only at
+    /// the end). One found is tied for the rest of the fit: its keyframes share one value and
+    /// one gradient (the sum of theirs), so it cannot drift apart again.
+    pub static_every: u64,
     /// Score the held-out frames every this many steps for the curve (0: only before and after).
     pub eval_every: u64,
     /// Densification and pruning (its budget is replaced by `max_gaussians`), if any.
@@ -96,6 +122,13 @@ pub struct FitOptions {
     pub time_budget: Option<Duration>,
     /// What the renders vary (background, footprint).
     pub render: RenderOptions,
+    /// Refine the training frames' cameras with the scene (`crate::cameras`); held-out frames
+    /// keep theirs.
+    pub refine_cameras: bool,
+    /// The cameras' learning rates: rotation (radians), translation (times `extent`), log focal.
+    pub camera_rates: [f64; 3],
+    /// Weight of the prior `w·|offset|²` that pulls a refined camera back toward its given one.
+    pub camera_prior: f64,
 }
 
 impl Default for FitOptions {
@@ -113,6 +146,8 @@ impl Default for FitOptions {
             prior: 1e-4,
             prior_fade_steps: 100,
             static_tolerance: 1e-3,
+            static_pixels: 1.0,
+            static_every: 50,
             eval_every: 0,
             densify: None,
             extent: 1.0,
@@ -122,6 +157,9 @@ impl Default for FitOptions {
                 features: false,
                 ..RenderOptions::default()
             },
+            refine_cameras: false,
+            camera_rates: [1e-3, 1e-3, 1e-4],
+            camera_prior: 1.0,
         }
     }
 }
@@ -187,6 +225,9 @@ pub struct FitReport {
     pub curve: Vec<CurvePoint>,
     /// True when the callback or the time budget stopped the fit early.
     pub stopped: bool,
+    /// Every frame's camera as the fit ended: the given one, or for a training frame of a fit
+    /// that refines cameras, the refined one.
+    pub cameras: Vec<Camera>,
 }
 
 /// The indices of the frames held out of `frames` frames: every `every`-th (none for 0).
@@ -216,10 +257,18 @@ pub fn fit(
         ));
     }
     let raster = CpuRasterizer::new();
-    let score =
-        |scene: &FittedScene, which: &[usize]| mean_psnr(&raster, scene, frames, which, options);
-    let holdout_psnr_before = score(start, &holdout)?;
-    let mut fitting = Fitting::new(start, options)?;
+    let given: Vec<Camera> = frames.iter().map(|f| f.camera).collect();
+    let score = |scene: &FittedScene, which: &[usize], cameras: &[Camera]| {
+        mean_psnr(&raster, scene, frames, cameras, which, options)
+    };
+    let holdout_psnr_before = score(start, &holdout, &given)?;
+    let mut fitting = Fitting::new(start, options, &frames[train[0]].camera)?;
+    if options.refine_cameras {
+        fitting.cameras = Some(CameraRefinement::new(given.clone(), options.adam));
+    }
+    if options.static_every > 0 && options.steps > 0 {
+        fitting.tie_static();
+    }
     let mut rng = SplitMix(options.seed);
     let mut order = Vec::new();
     let mut curve = Vec::new();
@@ -234,10 +283,10 @@ pub fn fit(
             rng.shuffle(&mut order);
         }
         let Some(index) = order.pop() else { break };
-        let loss = fitting.step(&raster, &frames[index], step, &mut rng)?;
+        let loss = fitting.step(&raster, frames, index, step, &mut rng)?;
         let scored = options.eval_every > 0 && (step + 1).is_multiple_of(options.eval_every);
         let holdout_psnr = if scored {
-            score(&fitting.scene(start.times.clone(), false), &holdout)?
+            score(&fitting.scene(start.times.clone(), false), &holdout, &given)?
         } else {
             None
         };
@@ -260,6 +309,10 @@ pub fn fit(
         }
     }
     let steps = curve.len() as u64;
+    let cameras = fitting
+        .cameras
+        .as_ref()
+        .map_or_else(|| given.clone(), CameraRefinement::cameras);
     let scene = if steps == 0 {
         let mut same = start.clone();
         same.static_mask = exactly_static(&fitting.params);
@@ -273,11 +326,12 @@ pub fn fit(
         gaussians: scene.len(),
         static_count: scene.static_mask.iter().filter(|s| **s).count(),
         holdout_psnr_before,
-        holdout_psnr_after: score(&scene, &holdout)?,
-        train_psnr_after: score(&scene, &train)?.unwrap_or(f64::NAN),
+        holdout_psnr_after: score(&scene, &holdout, &given)?,
+        train_psnr_after: score(&scene, &train, &cameras)?.unwrap_or(f64::NAN),
         holdout_frames: holdout,
         curve,
         stopped,
+        cameras,
     };
     Ok((scene, report))
 }
@@ -322,6 +376,7 @@ fn mean_psnr(
     raster: &CpuRasterizer,
     scene: &FittedScene,
     frames: &[Frame],
+    cameras: &[Camera],
     which: &[usize],
     options: &FitOptions,
 ) -> Result<Option<f64>, FitError> {
@@ -332,7 +387,7 @@ fn mean_psnr(
     let mut total = 0.0;
     for &i in which {
         let f = &frames[i];
-        let image = raster.render(&track.at(f.time)?, &f.camera, &options.render)?;
+        let image = raster.render(&track.at(f.time)?, &cameras[i], &options.render)?;
         total += psnr(
             &image.rgb,
             &f.rgb,
@@ -353,34 +408,207 @@ struct Fitting<'o> {
     stats: DensifyStats,
     times: Vec<f64>,
     options: &'o FitOptions,
+    /// One entry per Gaussian: tied static (its keyframes share one value and one gradient).
+    tied: Vec<bool>,
+    /// The camera whose pixel at a Gaussian's depth is the static tolerance.
+    view: Camera,
+    /// The gradient, reused from step to step.
+    grad: KeyframeParams,
+    /// Per row of a tied Gaussian: what its keyframe's position was pulled by since the tie
+    /// ([`Evidence`]); cleared by densification.
+    evidence: Vec<Evidence>,
+    /// Gaussians untied once (the frames moved them): never tied again.
+    moving: Vec<bool>,
+    /// The frames' refined cameras, when the fit refines them.
+    cameras: Option<CameraRefinement>,
 }
 
+/// The frames' pull on one keyframe of a tied Gaussian, to tell a Gaussian that only looks still
+/// (tied because its start barely moved) from one the frames want to move: the sum of the
+/// position gradients this keyframe's copy received, the sum of their norms, the sum of its blend
+/// weights, and how many frames it carried much of.
+#[derive(Debug, Clone, Copy, Default)]
+struct Evidence {
+    sum: [f64; 3],
+    norms: f64,
+    weight: f64,
+    frames: u32,
+}
+
+/// A tied Gaussian is untied when some keyframe's pull, less its share of the Gaussian's common
+/// pull, is this consistent (its norm over the sum of the pulls' norms: near `1/√n` for `n` pulls
+/// in random directions, near 1 for pulls in one direction) …
+const UNTIE_CONSISTENCY: f64 = 0.95;
+/// … over at least this many frames carried by that keyframe (blend weight over a quarter).
+const UNTIE_FRAMES: u32 = 20;
+
 impl<'o> Fitting<'o> {
-    fn new(start: &FittedScene, options: &'o FitOptions) -> Result<Self, FitError> {
+    fn new(start: &FittedScene, options: &'o FitOptions, view: &Camera) -> Result<Self, FitError> {
         let params = KeyframeParams::from_sets(&start.sets)?;
         Ok(Self {
             prior: params.params.clone(),
             adam: Adam::new(options.adam, params.params.len()),
             stats: DensifyStats::new(params.gaussians()),
+            tied: vec![false; params.gaussians()],
+            grad: zeros_like(&params),
+            evidence: vec![Evidence::default(); params.params.len()],
+            moving: vec![false; params.gaussians()],
+            cameras: None,
             params,
             times: start.times.clone(),
             options,
+            view: *view,
         })
     }
 
-    /// One step on `frame`; returns its photometric loss.
+    /// The set at `t`, built from the keyframes its interpolation reads (the bracketing pair and
+    /// one on each side, for the Bessel tangents): the same bits as the whole track's `at(t)`,
+    /// without building every keyframe's set.
+    fn set_at(&self, t: f64) -> Result<GaussianSet, FitError> {
+        let k = self.times.len();
+        let at = self.times.partition_point(|&x| x < t);
+        if at < k && self.times[at] == t {
+            return Ok(self.params.set(at));
+        }
+        if at == 0 || at >= k {
+            return Err(FitError::Invalid(format!(
+                "t = {t} is outside the keyframes' span"
+            )));
+        }
+        let (lo, hi) = ((at - 1).saturating_sub(1), (at + 1).min(k - 1));
+        let keyframes = (lo..=hi)
+            .map(|key| (self.times[key], self.params.set(key)))
+            .collect();
+        FittedScene::new(keyframes)?.at(t)
+    }
+
+    /// Ties every Gaussian static now that the frames have not shown to move ([`tie_static`]),
+    /// each with its evidence cleared.
+    fn tie_static(&mut self) {
+        let before = self.tied.clone();
+        tie_static(
+            &mut self.params,
+            &mut self.tied,
+            &self.moving,
+            &self.view,
+            self.options,
+        );
+        let kf = self.params.keyframes();
+        for (i, _) in before
+            .iter()
+            .zip(&self.tied)
+            .enumerate()
+            .filter(|(_, (a, b))| !**a && **b)
+        {
+            for k in 0..kf {
+                self.evidence[self.params.row_index(i, k)] = Evidence::default();
+            }
+        }
+    }
+
+    /// Adds this step's position gradients (`g`, from the frame alone) to the tied Gaussians'
+    /// evidence; `blend` is how the frame's set was made from the keyframes.
+    fn gather_evidence(&mut self, g: &KeyframeParams, blend: &Blend) {
+        let keys: Vec<(usize, f64)> = blend
+            .position
+            .iter()
+            .copied()
+            .enumerate()
+            .filter(|(_, c)| *c != 0.0)
+            .collect();
+        for (i, _) in self.tied.iter().enumerate().filter(|(_, t)| **t) {
+            for &(k, c) in &keys {
+                let pull: [f64; 3] = std::array::from_fn(|j| g.value(Group::Position, i, k, j));
+                let e = &mut self.evidence[self.params.row_index(i, k)];
+                for (s, p) in e.sum.iter_mut().zip(pull) {
+                    *s += p;
+                }
+                e.norms += pull.iter().map(|p| p * p).sum::<f64>().sqrt();
+                e.weight += c;
+                e.frames += u32::from(c.abs() > 0.25);
+            }
+        }
+    }
+
+    /// Unties the tied Gaussians the frames want to move: some keyframe pulled, beyond its share
+    /// of the Gaussian's common pull, consistently in one direction ([`UNTIE_CONSISTENCY`] over
+    /// at least [`UNTIE_FRAMES`] frames). Such a one was tied on its start's say and is not
+    /// static: it is marked moving and never tied again.
+    fn untie_moving(&mut self) {
+        let kf = self.params.keyframes();
+        for i in 0..self.tied.len() {
+            if !self.tied[i] {
+                continue;
+            }
+            let rows = &self.evidence[self.params.row_index(i, 0)..self.params.row_index(i, kf)];
+            let weight: f64 = rows.iter().map(|e| e.weight).sum();
+            let common: [f64; 3] = std::array::from_fn(|j| rows.iter().map(|e| e.sum[j]).sum());
+            let pulled = rows.iter().any(|e| {
+                if e.frames < UNTIE_FRAMES || e.norms <= 0.0 || weight == 0.0 {
+                    return false;
+                }
+                let own = (0..3)
+                    .map(|j| (e.sum[j] - common[j] * e.weight / weight).powi(2))
+                    .sum::<f64>()
+                    .sqrt();
+                own > UNTIE_CONSISTENCY * e.norms
+            });
+            if pulled {
+                self.tied[i] = false;
+                self.moving[i] = true;
+            }
+        }
+    }
+
+    /// A tied Gaussian's gradient: the sum of its keyframes', given to each.
+    fn tie_gradient(&self, g: &mut KeyframeParams) {
+        let kf = self.params.keyframes();
+        if kf < 2 {
+            return;
+        }
+        for (i, _) in self.tied.iter().enumerate().filter(|(_, t)| **t) {
+            for group in Group::ALL {
+                for j in 0..group.width() {
+                    let sum: f64 = (0..kf).map(|k| g.value(group, i, k, j)).sum();
+                    for k in 0..kf {
+                        *g.value_mut(group, i, k, j) = sum;
+                    }
+                }
+            }
+        }
+    }
+
+    /// A tied Gaussian's keyframes after Adam's step: one value, their mean (Adam's moments of
+    /// the rows may differ from before the tie).
+    fn tie_values(&mut self) {
+        if self.params.keyframes() < 2 {
+            return;
+        }
+        for i in 0..self.tied.len() {
+            if self.tied[i] {
+                share(&mut self.params, i);
+            }
+        }
+    }
+
+    /// One step on `frames[index]`; returns its photometric loss.
     fn step(
         &mut self,
         raster: &CpuRasterizer,
-        frame: &Frame,
+        frames: &[Frame],
+        index: usize,
         step: u64,
         rng: &mut SplitMix,
     ) -> Result<f64, FitError> {
         let o = self.options;
-        let scene = self.scene(self.times.clone(), false);
-        let set = scene.at(frame.time)?;
-        let (w, h) = (frame.camera.width(), frame.camera.height());
-        let (image, saved) = raster.render_saved(&set, &frame.camera, &o.render)?;
+        let frame = &frames[index];
+        let set = self.set_at(frame.time)?;
+        let camera = self
+            .cameras
+            .as_ref()
+            .map_or(frame.camera, |c| *c.camera(index));
+        let (w, h) = (camera.width(), camera.height());
+        let (image, saved) = raster.render_saved(&set, &camera, &o.render)?;
         // SSIM's window needs 11×11 pixels: a smaller frame is scored by L1 alone.
         let small = (w as usize) < SSIM_WINDOW || (h as usize) < SSIM_WINDOW;
         let lambda = if small { 0.0 } else { o.lambda_dssim };
@@ -388,12 +616,25 @@ impl<'o> Fitting<'o> {
         let grads = raster.backward(
             &saved,
             &RenderGradients::rgb(&loss.gradient),
-            BackwardOptions::default(),
+            BackwardOptions {
+                camera: self.cameras.is_some(),
+            },
         )?;
         self.stats.accumulate(&grads.gaussians.means2d, w, h);
-        let mut g = zeros_like(&self.params);
+        let mut g = std::mem::replace(
+            &mut self.grad,
+            KeyframeParams::from_rows(Params::zeros(0), 1),
+        );
+        if g.params.len() == self.params.params.len() && g.keyframes() == self.params.keyframes() {
+            for group in Group::ALL {
+                g.params.group_mut(group).fill(0.0);
+            }
+        } else {
+            g = zeros_like(&self.params);
+        }
         let blend = Blend::new(&self.times, frame.time)?;
         chain(&blend, &self.params, &set, &grads.gaussians, &mut g);
+        self.gather_evidence(&g, &blend);
         add_smoothness(&self.params, &self.times, o.smoothness, &mut g);
         let fade = if o.prior_fade_steps == 0 {
             0.0
@@ -408,13 +649,21 @@ impl<'o> Fitting<'o> {
                 }
             }
         }
+        self.tie_gradient(&mut g);
         if let Some(max) = o.clip_norm {
             g.params.clip_norm(max);
         }
         self.adam
             .step(&mut self.params.params, &g.params, o.rates.at(step))?;
+        self.grad = g;
+        if let Some(cameras) = self.cameras.as_mut() {
+            let r = o.camera_rates;
+            let rates = [r[0], r[1] * o.extent, r[2]];
+            cameras.step(index, &grads.camera.tangent, rates, o.camera_prior)?;
+        }
         self.params.params.normalize_rotations();
         keep_in_box(&mut self.params.params, o.extent);
+        self.tie_values();
         if let Some(d) = o.densify
             && step > 0
             && step >= d.from
@@ -426,16 +675,28 @@ impl<'o> Fitting<'o> {
             config.budget = o.max_gaussians;
             densify_keyframes(self, &config, rng.next_u64());
         }
+        if o.static_every > 0 && (step + 1).is_multiple_of(o.static_every) {
+            self.untie_moving();
+            self.tie_static();
+        }
         Ok(loss.value)
     }
 
-    /// The scene as fitted so far; `finish` makes the static Gaussians share one value.
+    /// The scene as fitted so far; `finish` also ties the Gaussians static at the end and marks
+    /// every tied one static.
     fn scene(&self, times: Vec<f64>, finish: bool) -> FittedScene {
-        let mut params = self.params.clone();
-        let static_mask = if finish {
-            share_static(&mut params, self.options.static_tolerance)
+        let (params, static_mask) = if finish {
+            let (mut params, mut tied) = (self.params.clone(), self.tied.clone());
+            tie_static(
+                &mut params,
+                &mut tied,
+                &self.moving,
+                &self.view,
+                self.options,
+            );
+            (params, tied)
         } else {
-            vec![false; params.gaussians()]
+            (self.params.clone(), vec![false; self.params.gaussians()])
         };
         FittedScene {
             times,
@@ -551,9 +812,13 @@ fn densify_keyframes(fitting: &mut Fitting<'_>, config: &c4g_optim::DensifyConfi
     let mut prior = Params::zeros(0);
     let mut added_prior = Params::zeros(0);
     let mut kept = Vec::new();
+    let mut tied = Vec::with_capacity(proxy.len());
+    let mut moving = Vec::with_capacity(proxy.len());
     for r in 0..proxy.len() {
         let out = proxy.row(r);
         let parent = out[11] as usize;
+        tied.push(fitting.tied[parent]);
+        moving.push(fitting.moving[parent]);
         let base = before.row(parent);
         let copy = out == base;
         let original = copy && !first_copy[parent];
@@ -585,29 +850,76 @@ fn densify_keyframes(fitting: &mut Fitting<'_>, config: &c4g_optim::DensifyConfi
     }
     fitting.prior = prior;
     fitting.params = KeyframeParams::from_rows(rows, kf);
+    // A copy of a tied Gaussian is tied: its rows, moved alike, are still one value. Evidence
+    // starts afresh.
+    fitting.tied = tied;
+    fitting.moving = moving;
+    fitting.evidence = vec![Evidence::default(); fitting.params.params.len()];
 }
 
-/// Marks (and makes share one value) the Gaussians whose positions stay within `tolerance` of the
-/// first keyframe's; with one keyframe every Gaussian is static.
-fn share_static(params: &mut KeyframeParams, tolerance: f64) -> Vec<bool> {
-    let (n, kf) = (params.gaussians(), params.keyframes());
-    let mut mask = vec![false; n];
-    for (i, m) in mask.iter_mut().enumerate() {
-        let moved = (1..kf).map(|k| distance(params, i, k)).fold(0.0, f64::max);
-        if moved <= tolerance {
-            *m = true;
+/// Ties every Gaussian neither `tied` nor `moving` whose keyframe positions all lie in a ball as wide as its
+/// tolerance ([`tolerance`]) around their mean (its whole motion spans no more): marks it and
+/// makes its keyframes share one value ([`share`]).
+/// With one keyframe every Gaussian is static. Returns how many it tied.
+fn tie_static(
+    params: &mut KeyframeParams,
+    tied: &mut [bool],
+    moving: &[bool],
+    view: &Camera,
+    options: &FitOptions,
+) -> usize {
+    let mut count = 0;
+    for (i, t) in tied.iter_mut().enumerate() {
+        if *t || moving[i] {
+            continue;
+        }
+        let (mean, farthest) = spread(params, i);
+        if 2.0 * farthest <= tolerance(view, options, mean) {
+            *t = true;
             share(params, i);
+            count += 1;
         }
     }
-    mask
+    count
 }
 
-fn distance(params: &KeyframeParams, i: usize, k: usize) -> f64 {
-    (0..3)
-        .map(|j| params.value(Group::Position, i, k, j) - params.value(Group::Position, i, 0, j))
-        .map(|d| d * d)
-        .sum::<f64>()
-        .sqrt()
+/// How far a Gaussian's keyframe positions (mean `mean`) may stray for it to be static:
+/// [`FitOptions::static_pixels`] pixels at its depth as `view` sees it, at least
+/// [`FitOptions::static_tolerance`].
+fn tolerance(view: &Camera, options: &FitOptions, mean: [f64; 3]) -> f64 {
+    let floor = options.static_tolerance;
+    if options.static_pixels <= 0.0 {
+        return floor;
+    }
+    let p = glam::Vec3::new(mean[0] as f32, mean[1] as f32, mean[2] as f32);
+    let depth = f64::from(view.to_camera(p).z.abs());
+    let k = view.intrinsics();
+    let focal = f64::from(k.fx.max(k.fy));
+    if focal > 0.0 && depth.is_finite() {
+        floor.max(options.static_pixels * depth / focal)
+    } else {
+        floor
+    }
+}
+
+/// Gaussian `i`'s mean keyframe position and the farthest any keyframe strays from it.
+fn spread(params: &KeyframeParams, i: usize) -> ([f64; 3], f64) {
+    let kf = params.keyframes();
+    let mean: [f64; 3] = std::array::from_fn(|j| {
+        (0..kf)
+            .map(|k| params.value(Group::Position, i, k, j))
+            .sum::<f64>()
+            / kf as f64
+    });
+    let farthest = (0..kf)
+        .map(|k| {
+            (0..3)
+                .map(|j| (params.value(Group::Position, i, k, j) - mean[j]).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        })
+        .fold(0.0, f64::max);
+    (mean, farthest)
 }
 
 /// Gaussian `i`'s keyframe values replaced by their mean (quaternions on keyframe 0's side,
@@ -685,7 +997,19 @@ impl SplitMix {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use c4g_scene::GaussianSet;
+    use c4g_scene::Intrinsics;
+
+    fn view() -> Camera {
+        let k = Intrinsics {
+            fx: 40.0,
+            fy: 40.0,
+            cx: 20.0,
+            cy: 20.0,
+            width: 40,
+            height: 40,
+        };
+        Camera::from_world_to_camera_matrix(k, Default::default()).unwrap()
+    }
 
     #[test]
     fn every_nth_frame_is_held_out() {
@@ -721,7 +1045,7 @@ mod tests {
         ])
         .unwrap();
         let options = FitOptions::default();
-        let mut fitting = Fitting::new(&start, &options).unwrap();
+        let mut fitting = Fitting::new(&start, &options, &view()).unwrap();
         fitting.stats.accumulate(
             &[[1e-5, 0.0], [1e-5, 0.0], [0.0, 0.0], [0.0, 0.0]],
             128,
@@ -759,6 +1083,34 @@ mod tests {
                 assert_eq!(row(child, k)[6..], parent(1, k)[6..]);
             }
         }
+    }
+
+    /// The set a step renders, built from the keyframes around `t` alone, is the whole track's
+    /// `at(t)` bit for bit, at keyframe times, inside the first and last intervals and between.
+    #[test]
+    fn the_set_a_step_renders_is_the_whole_tracks_bit_for_bit() {
+        let times = [0.0, 0.2, 0.5, 0.6, 0.9, 1.0];
+        let sets: Vec<GaussianSet> = (0..times.len())
+            .map(|k| {
+                let x = (k as f32 * 0.7).sin();
+                GaussianSet::new(
+                    vec![[x, x * x, 2.0 + 0.1 * k as f32], [0.5, -x, 3.0]],
+                    vec![[0.1 + 0.01 * k as f32; 3]; 2],
+                    vec![[1.0, 0.1 * x, 0.0, 0.0]; 2],
+                    vec![0.5, 0.2 + 0.1 * k as f32],
+                    vec![[0.5, x.abs(), 0.1]; 2],
+                )
+                .unwrap()
+            })
+            .collect();
+        let start = FittedScene::new(times.iter().copied().zip(sets).collect()).unwrap();
+        let options = FitOptions::default();
+        let fitting = Fitting::new(&start, &options, &view()).unwrap();
+        let whole = fitting.scene(start.times.clone(), false);
+        for t in [0.0, 0.05, 0.2, 0.33, 0.55, 0.6, 0.75, 0.95, 1.0] {
+            assert_eq!(fitting.set_at(t).unwrap(), whole.at(t).unwrap(), "t = {t}");
+        }
+        assert!(fitting.set_at(1.1).is_err());
     }
 
     /// The smoothness gradient against central differences of its energy (quadratic: exact up to

@@ -72,10 +72,11 @@ impl KeyframeParams {
 
     /// Keyframe `k`'s set (activated, rounded to f32, as [`Params::to_set`]).
     pub fn set(&self, k: usize) -> GaussianSet {
-        let keep: Vec<bool> = (0..self.params.len())
-            .map(|r| r % self.keyframes == k)
-            .collect();
-        self.params.select(&keep).to_set()
+        let mut rows = Params::zeros(0);
+        for i in 0..self.gaussians() {
+            rows.push(&self.params.row(self.row_index(i, k)));
+        }
+        rows.to_set()
     }
 
     /// Every keyframe's set, in keyframe order.

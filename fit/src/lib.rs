@@ -7,6 +7,8 @@
 //! - [`backward`]: the gradient of `at(t)` with respect to the keyframe parameters;
 //! - [`fit`](mod@fit): the loop ([`fit()`]): frames, holdout, loss, regularisers, Adam,
 //!   densification, static Gaussians, the report and progress;
+//! - `cameras`: refining the training frames' cameras with the scene
+//!   ([`FitOptions::refine_cameras`]);
 //! - [`cover`]: [`cover_frame`], Gaussians for the part of the source frame outside the model's
 //!   centre crop;
 //! - [`preset`]: what a job asks ([`FitSettings`], the [`Preset`]s `fast`, `default`, `best`),
@@ -21,6 +23,7 @@
 //! live in the service and its edges.
 
 pub mod backward;
+mod cameras;
 pub mod cover;
 pub mod error;
 pub mod file;

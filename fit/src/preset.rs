@@ -46,7 +46,7 @@ impl Preset {
         };
         match self {
             Preset::Fast => FitSettings {
-                steps: 1000,
+                steps: 1300,
                 resolution: 128,
                 max_gaussians: 10_000,
                 keyframe_every: 12,
@@ -55,7 +55,7 @@ impl Preset {
                 ..base
             },
             Preset::Default => FitSettings {
-                steps: 1500,
+                steps: 4000,
                 resolution: 192,
                 max_gaussians: 30_000,
                 time_budget_s: Some(280.0),
@@ -63,7 +63,7 @@ impl Preset {
                 ..base
             },
             Preset::Best => FitSettings {
-                steps: 4000,
+                steps: 10_000,
                 resolution: 256,
                 max_gaussians: 100_000,
                 keyframe_every: 6,
@@ -104,8 +104,8 @@ pub struct FitSettings {
     pub keyframe_every: usize,
     /// Every `holdout_every`-th source frame is held out and scored (0: none).
     pub holdout_every: usize,
-    /// Refine the input cameras with the scene ([`check`](Self::check) refuses it for now: the
-    /// loop does not refine cameras yet).
+    /// Refine the training frames' cameras with the scene (held-out frames keep theirs:
+    /// [`FitOptions::refine_cameras`]).
     pub refine_cameras: bool,
     /// Stop after this many seconds, if set.
     pub time_budget_s: Option<f64>,
@@ -141,12 +141,6 @@ impl FitSettings {
                 "steps is {}; at most {MAX_STEPS} (use time_budget_s to bound a long fit)",
                 self.steps
             ));
-        }
-        if self.refine_cameras {
-            return refuse(
-                "refine_cameras: refining the input cameras is not built yet; set it to false"
-                    .into(),
-            );
         }
         if !RESOLUTION.contains(&self.resolution) {
             return refuse(format!(
@@ -247,6 +241,7 @@ impl FitSettings {
             eval_every: (steps / 10).max(1),
             densify,
             extent,
+            refine_cameras: self.refine_cameras,
             time_budget: self
                 .time_budget_s
                 .filter(|b| b.is_finite() && *b > 0.0)
@@ -390,13 +385,6 @@ mod tests {
             ),
             (
                 FitSettings {
-                    refine_cameras: true,
-                    ..ok.clone()
-                },
-                "refine_cameras",
-            ),
-            (
-                FitSettings {
                     keyframe_every: usize::MAX,
                     ..ok.clone()
                 },
@@ -418,6 +406,12 @@ mod tests {
             ..ok
         };
         edges.check().unwrap();
+        let refining = FitSettings {
+            refine_cameras: true,
+            ..Preset::Fast.settings()
+        };
+        refining.check().unwrap();
+        assert!(refining.options(1.0).refine_cameras);
     }
 
     #[test]

@@ -287,10 +287,9 @@ fn the_same_seed_gives_the_same_bits() {
 }
 
 /// Static Gaussians of the scene end static and share one value; every moving one does not. The
-/// tolerance, 0.03 scene units, is about 1.2 pixels at the scene's depth: a static Gaussian's
-/// keyframes drift apart by up to 0.022 in 60 steps (measured; each keyframe sees other frames,
-/// and moving Gaussians pass in front of some), the slowest moving one travels 0.055 between
-/// keyframes.
+/// start holds the static ones still, so they are tied before the first step; the slowest moving
+/// one travels 0.054 over the clip, wider than the tolerance (0.03 scene units, about 1.2 pixels
+/// at the scene's depth).
 #[test]
 fn static_gaussians_end_static_and_moving_ones_do_not() {
     let truth = scene(0.0);
@@ -368,4 +367,156 @@ fn inputs_that_describe_no_fit_are_refused() {
     let mut short = frames[0].clone();
     short.rgb.pop();
     assert!(run(&[short], &options(5)).is_err(), "not the camera's size");
+}
+
+/// A still scene (every Gaussian static) seen from a still camera, started from keyframe sets
+/// that wobble by a fraction of a pixel from keyframe to keyframe (as a feed-forward answer does):
+/// the Gaussians are tied static before the first step and the fit ends with most of them
+/// static, each sharing one value across the keyframes.
+#[test]
+fn a_still_scene_ends_mostly_static() {
+    let still = |s: &FittedScene| {
+        let first = s.sets[0].clone();
+        FittedScene::new(s.times.iter().map(|&t| (t, first.clone())).collect()).unwrap()
+    };
+    let truth = still(&scene(0.0));
+    let mut wobble = Rng(3);
+    let mut start = still(&scene(0.6));
+    for set in &mut start.sets {
+        let moved: Vec<[f32; 3]> = set
+            .positions()
+            .iter()
+            .map(|p| {
+                let mut d = || 0.006 * (wobble.unit() - 0.5);
+                [p[0] + d(), p[1] + d(), p[2]]
+            })
+            .collect();
+        *set = GaussianSet::new(
+            moved,
+            set.scales().to_vec(),
+            set.rotations().to_vec(),
+            set.opacities().to_vec(),
+            set.colors().to_vec(),
+        )
+        .unwrap();
+    }
+    let mut o = options(120);
+    o.static_tolerance = 0.0;
+    let (fitted, report) = fit(&start, &frames(&truth), &o, |_| Control::Continue).unwrap();
+    eprintln!("{} of {GAUSSIANS} static", report.static_count);
+    assert!(
+        report.static_count * 4 >= GAUSSIANS * 3,
+        "{}",
+        report.static_count
+    );
+    for (i, _) in fitted.static_mask.iter().enumerate().filter(|(_, s)| **s) {
+        assert!(
+            fitted
+                .sets
+                .iter()
+                .all(|s| s.positions()[i] == fitted.sets[0].positions()[i])
+        );
+    }
+    assert!(report.holdout_psnr_after > report.holdout_psnr_before);
+}
+
+/// A start that holds the moving Gaussians still (each at its mean position at every keyframe)
+/// ties them before the first step; the frames pull their keyframes apart consistently, so they
+/// are untied and end moving, while the static ones stay static.
+#[test]
+fn a_moving_gaussian_tied_on_its_starts_say_is_untied() {
+    let truth = scene(0.0);
+    let mut start = scene(0.6);
+    let k = start.sets.len();
+    let mut positions: Vec<Vec<[f32; 3]>> =
+        start.sets.iter().map(|s| s.positions().to_vec()).collect();
+    for i in (1..GAUSSIANS).step_by(2) {
+        let mean: [f32; 3] =
+            std::array::from_fn(|a| positions.iter().map(|p| p[i][a]).sum::<f32>() / k as f32);
+        for p in &mut positions {
+            p[i] = mean;
+        }
+    }
+    for (set, p) in start.sets.iter_mut().zip(positions) {
+        *set = GaussianSet::new(
+            p,
+            set.scales().to_vec(),
+            set.rotations().to_vec(),
+            set.opacities().to_vec(),
+            set.colors().to_vec(),
+        )
+        .unwrap();
+    }
+    let (fitted, report) = fit(&start, &frames(&truth), &options(240), |_| {
+        Control::Continue
+    })
+    .unwrap();
+    let moving_static = (1..GAUSSIANS)
+        .step_by(2)
+        .filter(|&i| fitted.static_mask[i])
+        .count();
+    let still_static = (0..GAUSSIANS)
+        .step_by(2)
+        .filter(|&i| fitted.static_mask[i])
+        .count();
+    eprintln!(
+        "moving ones static: {moving_static}; still ones static: {still_static}; {} dB",
+        report.holdout_psnr_after.unwrap()
+    );
+    // Measured: 4 of the 16 moving ones end static (tied while their neighbours' errors pulled
+    // them as much as their own motion), 12 of the 16 still ones do.
+    assert!(moving_static * 3 <= GAUSSIANS / 2, "{moving_static}");
+    assert!(still_static * 3 >= GAUSSIANS, "{still_static}");
+}
+
+/// The angle (radians) and the distance between two cameras' poses.
+fn pose_error(a: &Camera, b: &Camera) -> (f32, f32) {
+    let (ra, ta) = (a.world_to_camera(), b.world_to_camera());
+    let relative = ra.matrix3 * ta.matrix3.transpose();
+    let trace = relative.x_axis.x + relative.y_axis.y + relative.z_axis.z;
+    let angle = ((trace - 1.0) / 2.0).clamp(-1.0, 1.0).acos();
+    (angle, (ra.translation - ta.translation).length())
+}
+
+/// The given camera of training frame 0 is off the one that took it (rotated 0.03 rad, about
+/// 1.3 px, and shifted 0.02); refining the cameras moves it back toward the truth, while the
+/// held-out frames keep their given cameras and a fit without refinement keeps every camera.
+#[test]
+fn a_perturbed_camera_moves_back_toward_the_truth() {
+    let truth = scene(0.0);
+    let mut frames = frames(&truth);
+    let off = glam::Affine3A::from_rotation_translation(
+        glam::Quat::from_rotation_y(0.03),
+        glam::Vec3::new(0.02, 0.0, 0.0),
+    );
+    frames[0].camera = Camera::new(
+        *frames[0].camera.intrinsics(),
+        off * frames[0].camera.world_to_camera(),
+    )
+    .unwrap();
+    let mut o = options(120);
+    o.refine_cameras = true;
+    o.camera_rates = [2e-3, 2e-3, 0.0];
+    o.camera_prior = 1e-3;
+    let (_, report) = fit(&truth, &frames, &o, |_| Control::Continue).unwrap();
+    let before = pose_error(&frames[0].camera, &camera());
+    let after = pose_error(&report.cameras[0], &camera());
+    eprintln!(
+        "rotation {} -> {} rad, translation {} -> {}",
+        before.0, after.0, before.1, after.1
+    );
+    assert!(after.0 < 0.5 * before.0, "{before:?} -> {after:?}");
+    assert!(after.1 < before.1, "{before:?} -> {after:?}");
+    assert_eq!(
+        report.cameras[3], frames[3].camera,
+        "held out: the given camera"
+    );
+    o.refine_cameras = false;
+    let (_, kept) = fit(&truth, &frames, &o, |_| Control::Continue).unwrap();
+    assert!(
+        kept.cameras
+            .iter()
+            .zip(&frames)
+            .all(|(c, f)| *c == f.camera)
+    );
 }

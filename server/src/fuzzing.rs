@@ -84,7 +84,9 @@ pub fn upload(input: &[u8]) -> Result<(), String> {
                     data: Bytes::copy_from_slice(data),
                     kind: None,
                 };
-                images::read(media, kind, &options, &limits).map(drop)
+                // A few small kept frames, so the fuzzer reaches their path too.
+                let keep = c4g_service::clips::intake::kept::Keep { count: 4, side: 16 };
+                images::read(media, kind, &options, &limits, keep).map(drop)
             }
             // FFmpeg's to read, in a child process.
             _ => Ok(()),

@@ -19,6 +19,7 @@ use tokio::sync::Semaphore;
 
 use crate::ServiceError;
 use crate::clips::intake::cameras::{ClipCameras, Parsed};
+use crate::clips::intake::kept::Keep;
 use crate::clips::intake::{self, IntakeOptions, IntakeTools, Media};
 use crate::clips::record::{ClipRecord, KeptFrames, now};
 use crate::clips::shared::SharedClips;
@@ -59,7 +60,7 @@ pub struct Service {
     model_key: String,
     encode_slots: Arc<Semaphore>,
     /// How many source frames each upload keeps for fits, and their long side.
-    kept_frames: (usize, u32),
+    keep: Keep,
 }
 
 impl Service {
@@ -135,7 +136,10 @@ impl Service {
             job_videos: config.store_dir.join(&model_key).join("job-videos"),
             model_key,
             encode_slots: Arc::new(Semaphore::new(config.max_concurrent_encodes.max(1))),
-            kept_frames: (config.kept_frames, config.kept_frame_side),
+            keep: Keep {
+                count: config.kept_frames,
+                side: config.kept_frame_side,
+            },
             views,
         })
     }
@@ -168,18 +172,12 @@ impl Service {
             }
         })?;
         let started = Instant::now();
-        let intake = intake::read(media.clone(), &options, &self.limits, &self.tools).await?;
-        let (count, side) = self.kept_frames;
-        let (kept_times, kept_frames) = intake::kept::read_kept(
-            media,
-            &options,
-            &self.limits,
-            &self.tools,
-            &intake.source,
-            count,
-            side,
-        )
-        .await?;
+        let mut intake =
+            intake::read(media, &options, &self.limits, &self.tools, self.keep).await?;
+        let (kept_times, kept_frames): (Vec<f64>, Vec<_>) = std::mem::take(&mut intake.kept)
+            .into_iter()
+            .map(|f| (f.time, f.image))
+            .unzip();
         metrics::histogram!("c4g_intake_duration_seconds").record(started.elapsed().as_secs_f64());
         let sources: Vec<usize> = intake.frames.iter().map(|f| f.source_index).collect();
         if let Some(parsed) = &cameras {

@@ -655,7 +655,7 @@ def document(results: dict, png_name: str) -> str:
 # the sweep's own text, whenever the page is remade.
 KEPT_BEGIN = "<!-- kept: begin {name} -->"
 KEPT_END = "<!-- kept: end {name} -->"
-KEPT_SECTIONS = ("query-dropping", "official-keyframes", "gpu")
+KEPT_SECTIONS = ("query-dropping", "official-keyframes", "gpu", "fit")
 
 
 def kept_sections(previous: str) -> str:

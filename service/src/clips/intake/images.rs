@@ -14,6 +14,7 @@ use std::io::{Cursor, Read};
 use bytes::Bytes;
 use image::{ImageReader, RgbImage};
 
+use super::kept::Keep;
 use super::limits::{check_duration, check_frame_count, check_frame_size};
 use super::media::{
     DEFAULT_IMAGE_FPS, Intake, IntakeOptions, Media, SourceInfo, TimedFrame, frame_step,
@@ -34,6 +35,7 @@ pub fn read(
     kind: MediaKind,
     options: &IntakeOptions,
     limits: &Limits,
+    keep: Keep,
 ) -> Result<Intake, ServiceError> {
     let files = match (kind, media) {
         (_, Media::Frames(frames)) => frames,
@@ -75,15 +77,34 @@ pub fn read(
     }
     let (width, height) = size.unwrap_or((0, 0));
     let chosen = select(&times, options, limits)?;
+    let decoded = |i: usize| {
+        decode(&files[i], limits)
+            .map_err(|e| ServiceError::UnreadableMedia(format!("frame {i} cannot be decoded: {e}")))
+    };
     let frames = chosen
         .iter()
         .map(|&i| {
             Ok(TimedFrame {
                 source_index: i,
                 time: times[i],
-                image: decode(&files[i], limits).map_err(|e| {
-                    ServiceError::UnreadableMedia(format!("frame {i} cannot be decoded: {e}"))
-                })?,
+                image: decoded(i)?,
+            })
+        })
+        .collect::<Result<Vec<_>, ServiceError>>()?;
+    // Kept frames are decoded one at a time and shrunk at once (a context frame is not decoded
+    // twice).
+    let kept = keep
+        .pick(&times, options, width, height)
+        .into_iter()
+        .map(|i| {
+            let image = match chosen.iter().position(|&c| c == i) {
+                Some(k) => keep.shrink(&frames[k].image),
+                None => keep.shrink(&decoded(i)?),
+            };
+            Ok(TimedFrame {
+                source_index: i,
+                time: times[i],
+                image,
             })
         })
         .collect::<Result<Vec<_>, ServiceError>>()?;
@@ -96,6 +117,7 @@ pub fn read(
     };
     Ok(Intake {
         frames,
+        kept,
         source: SourceInfo {
             kind: "images".into(),
             frames: files.len(),
@@ -394,7 +416,14 @@ mod tests {
     fn the_source_rate_is_what_the_frames_times_say() {
         let frames = || Media::Frames((0..3).map(|_| Bytes::from(png(16, 16))).collect());
         let read_with = |options: IntakeOptions| {
-            read(frames(), MediaKind::Image, &options, &Limits::default()).unwrap()
+            read(
+                frames(),
+                MediaKind::Image,
+                &options,
+                &Limits::default(),
+                Keep::NONE,
+            )
+            .unwrap()
         };
         let timed = read_with(IntakeOptions {
             timestamps: Some(vec![0.0, 1.0, 2.0]),
@@ -557,6 +586,7 @@ mod tests {
             MediaKind::Frames,
             &IntakeOptions::default(),
             &limits,
+            Keep::NONE,
         ));
         assert!(matches!(e, ServiceError::TooLarge(_)), "{e:?}");
         assert!(message.contains("100000x100000"), "{message}");

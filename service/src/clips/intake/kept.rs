@@ -1,67 +1,75 @@
 //! Source frames kept for fits: a fit supervises a clip's scene with its own frames, many more
-//! than the context frames the model encodes. They are read at upload, from the same media by the
-//! same intake (so they keep the context frames' clock and window), spread evenly over the
-//! window, and kept small: at most `count` of them, at most `side` pixels on the long side.
-//!
-//! Reading them is a second pass over the upload: FFmpeg decodes the video again (or the archive
-//! is read again) for those frames. The frames of that pass are held at source size until they
-//! are shrunk, so their count is also bounded by [`HELD_BYTES`]. On disk they cost about
-//! `count` small PNGs a clip (48 frames at 256×144 are about 2-4 MB).
+//! than the context frames the model encodes. They come out of the same reading of the upload as
+//! the context frames (the video's one decoding pass, the archive's one read), spread evenly over
+//! the window (every frame of a shorter clip), and are kept small: at most `count` of them, at
+//! most `side` pixels on the long side. A kept frame is held at source size only until it is
+//! shrunk; their count is bounded by [`HELD_BYTES`] of source-size frames, so a 4K upload keeps
+//! fewer. On disk they cost about `count` small PNGs a clip (48 frames at 256×144: 2-4 MB).
 
 use image::RgbImage;
 use image::imageops::FilterType;
 
-use crate::ServiceError;
-use crate::clips::intake::{IntakeOptions, IntakeTools, Media, SourceInfo, read};
-use crate::config::Limits;
+use super::media::IntakeOptions;
+use super::sampling::window;
 
-/// Most bytes of source-size frames the pass holds at once.
+/// Most bytes of source-size frames kept at once.
 pub const HELD_BYTES: u64 = 256 << 20;
 
-/// Up to `count` source frames of `media` (read as `options` say, whose first pass found
-/// `source`), shrunk to at most `side` pixels on their long side, with their times.
-pub async fn read_kept(
-    media: Media,
-    options: &IntakeOptions,
-    limits: &Limits,
-    tools: &IntakeTools,
-    source: &SourceInfo,
-    count: usize,
-    side: u32,
-) -> Result<(Vec<f64>, Vec<RgbImage>), ServiceError> {
-    let frame_bytes = u64::from(source.width) * u64::from(source.height) * 3;
-    let count = count.min(usize::try_from(HELD_BYTES / frame_bytes.max(1)).unwrap_or(usize::MAX));
-    if count == 0 || side == 0 {
-        return Ok((Vec::new(), Vec::new()));
+/// How many source frames to keep, and how small.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Keep {
+    /// At most this many (0: none).
+    pub count: usize,
+    /// Long side, pixels.
+    pub side: u32,
+}
+
+impl Keep {
+    /// Keeps nothing.
+    pub const NONE: Keep = Keep { count: 0, side: 0 };
+
+    /// Indices into `times` of the frames to keep from a source of `width` × `height` frames.
+    pub fn pick(
+        &self,
+        times: &[f64],
+        options: &IntakeOptions,
+        width: u32,
+        height: u32,
+    ) -> Vec<usize> {
+        let frame_bytes = u64::from(width) * u64::from(height) * 3;
+        let held = usize::try_from(HELD_BYTES / frame_bytes.max(1)).unwrap_or(usize::MAX);
+        let count = self.count.min(held);
+        if count == 0 || self.side == 0 {
+            return Vec::new();
+        }
+        let frames = window(times, options);
+        spread(&frames, count)
     }
-    let options = IntakeOptions {
-        max_frames: Some(count),
-        stride: None,
-        cameras: None,
-        ..options.clone()
-    };
-    let limits = Limits {
-        max_context_frames: limits.max_context_frames.max(count),
-        ..limits.clone()
-    };
-    let intake = read(media, &options, &limits, tools).await?;
-    let (w, h) = small_size(source.width, source.height, side);
-    tokio::task::spawn_blocking(move || {
-        intake
-            .frames
-            .into_iter()
-            .map(|f| {
-                let image = if (f.image.width(), f.image.height()) == (w, h) {
-                    f.image
-                } else {
-                    image::imageops::resize(&f.image, w, h, FilterType::Triangle)
-                };
-                (f.time, image)
-            })
-            .unzip()
-    })
-    .await
-    .map_err(|e| ServiceError::Internal(format!("shrinking kept frames panicked: {e}")))
+
+    /// `image` shrunk (never enlarged) to at most `side` on the long side.
+    pub fn shrink(&self, image: &RgbImage) -> RgbImage {
+        let (w, h) = small_size(image.width(), image.height(), self.side);
+        if (image.width(), image.height()) == (w, h) {
+            return image.clone();
+        }
+        image::imageops::resize(image, w, h, FilterType::Triangle)
+    }
+}
+
+/// `k` of `items` spread evenly, both ends included (all of them when `k ≥ len`).
+fn spread(items: &[usize], k: usize) -> Vec<usize> {
+    let n = items.len();
+    if k >= n || n <= 1 {
+        return items.to_vec();
+    }
+    if k <= 1 {
+        return items[..1].to_vec();
+    }
+    let mut picked: Vec<usize> = (0..k)
+        .map(|i| items[(i * (n - 1) + (k - 1) / 2) / (k - 1)])
+        .collect();
+    picked.dedup();
+    picked
 }
 
 /// `width` × `height` shrunk (never enlarged) to at most `side` on the long side, aspect kept.
@@ -85,5 +93,28 @@ mod tests {
         assert_eq!(small_size(1080, 1920, 256), (144, 256));
         assert_eq!(small_size(100, 50, 256), (100, 50));
         assert_eq!(small_size(5000, 1, 256), (256, 1));
+    }
+
+    #[test]
+    fn kept_frames_spread_over_the_window_within_the_held_bytes() {
+        let times: Vec<f64> = (0..100).map(|i| f64::from(i) * 0.1).collect();
+        let keep = Keep { count: 5, side: 64 };
+        let all = IntakeOptions::default();
+        assert_eq!(keep.pick(&times, &all, 64, 64), vec![0, 25, 50, 74, 99]);
+        let window = IntakeOptions {
+            start: Some(1.0),
+            end: Some(2.0),
+            ..IntakeOptions::default()
+        };
+        let picked = keep.pick(&times, &window, 64, 64);
+        assert!(picked.iter().all(|&i| (10..=20).contains(&i)), "{picked:?}");
+        // 4K frames: 256 MiB holds 10 of them.
+        assert_eq!(keep.pick(&times, &all, 4096, 2160).len(), 5);
+        let many = Keep {
+            count: 48,
+            side: 64,
+        };
+        assert_eq!(many.pick(&times, &all, 4096, 2160).len(), 10);
+        assert!(Keep::NONE.pick(&times, &all, 64, 64).is_empty());
     }
 }

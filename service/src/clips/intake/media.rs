@@ -120,6 +120,8 @@ pub struct TimedFrame {
 pub struct Intake {
     /// Chosen context frames, in time order.
     pub frames: Vec<TimedFrame>,
+    /// Source frames kept for fits, shrunk, in time order ([`super::kept`]).
+    pub kept: Vec<TimedFrame>,
     /// The source.
     pub source: SourceInfo,
     /// Seconds between source frames ([`frame_step`]), when known: the time policy's floor.

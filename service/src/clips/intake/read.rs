@@ -2,18 +2,21 @@
 //! frames, holding it to the limits.
 
 use crate::ServiceError;
+use crate::clips::intake::kept::Keep;
 use crate::clips::intake::limits::validate_options;
 use crate::clips::intake::media::{Intake, IntakeOptions, IntakeTools, Media};
 use crate::clips::intake::sniff::MediaKind;
 use crate::clips::intake::{images, video};
 use crate::config::Limits;
 
-/// Reads an upload into context frames, holding it to `limits`.
+/// Reads an upload into context frames (and the source frames `keep` asks for), holding it to
+/// `limits`.
 pub async fn read(
     media: Media,
     options: &IntakeOptions,
     limits: &Limits,
     tools: &IntakeTools,
+    keep: Keep,
 ) -> Result<Intake, ServiceError> {
     validate_options(options, limits)?;
     if media.is_empty() {
@@ -30,11 +33,11 @@ pub async fn read(
     };
     match (kind, media) {
         (MediaKind::Video | MediaKind::Unknown, Media::File { data, .. }) => {
-            video::read(data, kind, options, limits, tools).await
+            video::read(data, kind, options, limits, tools, keep).await
         }
         (kind, media) => {
             let (options, limits) = (options.clone(), limits.clone());
-            tokio::task::spawn_blocking(move || images::read(media, kind, &options, &limits))
+            tokio::task::spawn_blocking(move || images::read(media, kind, &options, &limits, keep))
                 .await
                 .map_err(|e| ServiceError::Internal(format!("image intake panicked: {e}")))?
         }

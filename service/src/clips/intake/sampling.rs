@@ -11,11 +11,7 @@ pub fn select(
     options: &IntakeOptions,
     limits: &Limits,
 ) -> Result<Vec<usize>, ServiceError> {
-    let start = options.start.unwrap_or(f64::NEG_INFINITY);
-    let end = options.end.unwrap_or(f64::INFINITY);
-    let window: Vec<usize> = (0..times.len())
-        .filter(|&i| start <= times[i] && times[i] <= end)
-        .collect();
+    let window = window(times, options);
     if window.is_empty() {
         let last = times.last().copied().unwrap_or(0.0);
         return Err(ServiceError::invalid(format!(
@@ -41,6 +37,15 @@ pub fn select(
         .unwrap_or(limits.context_frames)
         .min(window.len());
     Ok(spread(&window, wanted))
+}
+
+/// Indices into `times` (increasing) of the frames inside the options' window.
+pub fn window(times: &[f64], options: &IntakeOptions) -> Vec<usize> {
+    let start = options.start.unwrap_or(f64::NEG_INFINITY);
+    let end = options.end.unwrap_or(f64::INFINITY);
+    (0..times.len())
+        .filter(|&i| start <= times[i] && times[i] <= end)
+        .collect()
 }
 
 /// `k` of `items` spread evenly, the first and the last included.

@@ -27,6 +27,7 @@ use serde::Deserialize;
 use tokio::io::{AsyncBufReadExt, AsyncRead, AsyncReadExt, BufReader};
 use tokio::process::Command;
 
+use super::kept::Keep;
 use super::limits::{check_duration, check_frame_count, check_frame_size};
 use super::media::{Intake, IntakeOptions, IntakeTools, SourceInfo, TimedFrame, frame_step};
 use super::sampling::select;
@@ -48,6 +49,7 @@ pub async fn read(
     options: &IntakeOptions,
     limits: &Limits,
     tools: &IntakeTools,
+    keep: Keep,
 ) -> Result<Intake, ServiceError> {
     std::fs::create_dir_all(&tools.scratch)
         .map_err(|e| ServiceError::storage("cannot create the scratch directory", &e))?;
@@ -84,7 +86,8 @@ pub async fn read(
         let mut warnings = listing.warnings(&times, stream.declared_frames());
         check_duration(times.last().copied().unwrap_or(0.0), limits)?;
 
-        let (chosen, images) = decode_context(
+        let kept_indices = keep.pick(&times, options, width, height);
+        let (chosen, images, kept) = decode_context(
             file.path(),
             tools,
             (width, height),
@@ -92,6 +95,7 @@ pub async fn read(
             options,
             limits,
             &mut warnings,
+            (keep, &kept_indices),
         )
         .await?;
         for warning in &warnings {
@@ -108,8 +112,17 @@ pub async fn read(
             })
             .collect();
         let fps = frame_rate(&times, stream.frame_rate());
+        let kept = kept
+            .into_iter()
+            .map(|(i, image)| TimedFrame {
+                source_index: i,
+                time: times[i],
+                image,
+            })
+            .collect();
         Ok(Intake {
             frames,
+            kept,
             source: SourceInfo {
                 kind: "video".into(),
                 frames: times.len(),
@@ -487,6 +500,7 @@ fn frame_rate(times: &[f64], declared: Option<f64>) -> f64 {
 /// Chooses the context frames among `times` and decodes them at `size`. When the decode ends
 /// before the last of them, chooses again among the frames it reached (cutting `times` to
 /// those, and saying so in `warnings`) and decodes those if they differ.
+#[allow(clippy::too_many_arguments)]
 async fn decode_context(
     path: &Path,
     tools: &IntakeTools,
@@ -495,12 +509,33 @@ async fn decode_context(
     options: &IntakeOptions,
     limits: &Limits,
     warnings: &mut Vec<String>,
-) -> Result<(Vec<usize>, Vec<RgbImage>), ServiceError> {
+    (keep, kept_indices): (Keep, &[usize]),
+) -> Result<ContextAndKept, ServiceError> {
     let chosen = select(times, options, limits)?;
-    let images = decode_frames(path, tools, width, height, &chosen).await?;
-    if images.len() == chosen.len() {
-        return Ok((chosen, images));
+    // One decoding pass gives the context frames and the kept ones; kept frames are shrunk as
+    // they are split out, and those the video did not reach are left out.
+    let mut wanted: Vec<usize> = chosen.iter().chain(kept_indices).copied().collect();
+    wanted.sort_unstable();
+    wanted.dedup();
+    let decoded = decode_frames(path, tools, width, height, &wanted).await?;
+    let reached = wanted.get(decoded.len()).copied().unwrap_or(usize::MAX);
+    let kept: Vec<(usize, RgbImage)> = wanted
+        .iter()
+        .zip(&decoded)
+        .filter(|(i, _)| kept_indices.contains(i))
+        .map(|(&i, image)| (i, keep.shrink(image)))
+        .collect();
+    let mut images: Vec<RgbImage> = wanted
+        .iter()
+        .zip(decoded)
+        .filter(|(i, _)| chosen.contains(i))
+        .map(|(_, image)| image)
+        .collect();
+    if chosen.iter().all(|&i| i < reached) {
+        return Ok((chosen, images, kept));
     }
+    let kept: Vec<(usize, RgbImage)> = kept.into_iter().filter(|(i, _)| *i < reached).collect();
+    images.truncate(chosen.iter().take_while(|&&i| i < reached).count());
     let plan = replan(times, &chosen, images.len(), options, limits)?;
     warnings.push(format!(
         "the second decoding pass ended before frame {} of the {} frames the first listed; the \
@@ -510,15 +545,22 @@ async fn decode_context(
         plan.readable
     ));
     times.truncate(plan.readable);
+    let kept: Vec<(usize, RgbImage)> = kept
+        .into_iter()
+        .filter(|(i, _)| *i < plan.readable)
+        .collect();
     if plan.reuses_decoded {
-        return Ok((plan.chosen, images));
+        return Ok((plan.chosen, images, kept));
     }
     let images = decode_frames(path, tools, width, height, &plan.chosen).await?;
     if images.len() < plan.chosen.len() {
         return Err(ends_before(plan.chosen[images.len()], None));
     }
-    Ok((plan.chosen, images))
+    Ok((plan.chosen, images, kept))
 }
+
+/// The context frames' indices and images, and the kept frames (index, shrunk image).
+type ContextAndKept = (Vec<usize>, Vec<RgbImage>, Vec<(usize, RgbImage)>);
 
 /// The context frames chosen again after a decode gave only the first `decoded` of `chosen`.
 #[derive(Debug, PartialEq)]
