@@ -38,5 +38,5 @@ pub use error::FitError;
 pub use file::{from_bytes, to_bytes};
 pub use fit::{Control, CurvePoint, FitOptions, FitReport, Frame, Progress, fit, holdout_frames};
 pub use keyframe_params::KeyframeParams;
-pub use preset::{FitSettings, Preset, keyframe_times};
+pub use preset::{FitSettings, Preset, keyframe_times, working_size};
 pub use scene::FittedScene;

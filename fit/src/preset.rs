@@ -251,6 +251,18 @@ impl FitSettings {
     }
 }
 
+/// A `width` × `height` frame brought to at most `side` pixels on its long side (never enlarged),
+/// its aspect kept: the size kept frames are stored at and fits work at.
+pub fn working_size(width: u32, height: u32, side: u32) -> (u32, u32) {
+    let long = width.max(height).max(1);
+    if long <= side {
+        return (width.max(1), height.max(1));
+    }
+    let scale = f64::from(side) / f64::from(long);
+    let shrink = |v: u32| ((f64::from(v) * scale).round() as u32).max(1);
+    (shrink(width), shrink(height))
+}
+
 /// The keyframe times of a fit: the context times, plus every `every`-th source time (source
 /// indices 0, `every`, 2·`every`, …) between the first and last context time, sorted, with times
 /// closer than 1e-9 s merged (the earlier kept); `every == 0` gives the context times alone.

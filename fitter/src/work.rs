@@ -9,7 +9,7 @@
 //! is covered first (`c4g_fit::cover_frame`), unless the job asks for no steps: then the start is
 //! the answer, unchanged.
 
-use c4g_fit::{Control, FitSettings, FittedScene, Frame, Progress, fit};
+use c4g_fit::{Control, FitSettings, FittedScene, Frame, Progress, fit, working_size};
 use c4g_proto::v1 as pb;
 use c4g_scene::{Camera, Intrinsics};
 use glam::Mat4;
@@ -113,17 +113,6 @@ pub fn prepare(job: &pb::FitJob) -> Result<Prepared, WorkError> {
         start,
         size,
     })
-}
-
-/// `width` × `height` brought to at most `side` on the long side (never enlarged).
-fn working_size(width: u32, height: u32, side: u32) -> (u32, u32) {
-    let long = width.max(height).max(1);
-    if long <= side {
-        return (width.max(1), height.max(1));
-    }
-    let scale = f64::from(side) / f64::from(long);
-    let shrink = |v: u32| ((f64::from(v) * scale).round() as u32).max(1);
-    (shrink(width), shrink(height))
 }
 
 /// The frame's camera at `w` × `h` (the module documentation maps the crop's intrinsics).
@@ -248,11 +237,5 @@ mod tests {
         let mut broken = frame(8, 4);
         broken.world_to_camera.pop();
         assert!(camera(&broken, 16, 9).is_err());
-    }
-
-    #[test]
-    fn working_sizes_keep_the_aspect_and_never_grow() {
-        assert_eq!(working_size(256, 144, 128), (128, 72));
-        assert_eq!(working_size(100, 50, 128), (100, 50));
     }
 }

@@ -48,7 +48,7 @@ impl Keep {
 
     /// `image` shrunk (never enlarged) to at most `side` on the long side.
     pub fn shrink(&self, image: &RgbImage) -> RgbImage {
-        let (w, h) = small_size(image.width(), image.height(), self.side);
+        let (w, h) = c4g_fit::working_size(image.width(), image.height(), self.side);
         if (image.width(), image.height()) == (w, h) {
             return image.clone();
         }
@@ -72,27 +72,24 @@ fn spread(items: &[usize], k: usize) -> Vec<usize> {
     picked
 }
 
-/// `width` × `height` shrunk (never enlarged) to at most `side` on the long side, aspect kept.
-pub fn small_size(width: u32, height: u32, side: u32) -> (u32, u32) {
-    let long = width.max(height).max(1);
-    if long <= side {
-        return (width.max(1), height.max(1));
-    }
-    let scale = f64::from(side) / f64::from(long);
-    let shrink = |v: u32| ((f64::from(v) * scale).round() as u32).max(1);
-    (shrink(width), shrink(height))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
     fn frames_shrink_to_the_long_side_keeping_the_aspect_and_never_grow() {
-        assert_eq!(small_size(1920, 1080, 256), (256, 144));
-        assert_eq!(small_size(1080, 1920, 256), (144, 256));
-        assert_eq!(small_size(100, 50, 256), (100, 50));
-        assert_eq!(small_size(5000, 1, 256), (256, 1));
+        let keep = Keep {
+            count: 1,
+            side: 256,
+        };
+        let size = |w, h| {
+            let small = keep.shrink(&RgbImage::new(w, h));
+            (small.width(), small.height())
+        };
+        assert_eq!(size(1920, 1080), (256, 144));
+        assert_eq!(size(1080, 1920), (144, 256));
+        assert_eq!(size(100, 50), (100, 50));
+        assert_eq!(size(5000, 1), (256, 1));
     }
 
     #[test]
