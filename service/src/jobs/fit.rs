@@ -263,10 +263,11 @@ pub async fn complete(
     if fits.progress(job_id, worker, progress).await? {
         return fits.fail(job_id, worker, "cancelled", false, true).await;
     }
+    let frame_times = fit_frame_times(&record, &settings);
     let holdout_times = outcome
         .holdout_frames
         .iter()
-        .filter_map(|&k| kept_time(&record, &settings, k))
+        .filter_map(|&k| frame_times.get(k).copied())
         .collect();
     let summary = FittedSummary {
         job_id: job_id.to_owned(),
@@ -276,7 +277,7 @@ pub async fn complete(
         keyframes: scene.times.clone(),
         steps: outcome.steps,
         seconds: outcome.seconds,
-        frames: spread(kept_count(&record), settings.max_frames).len(),
+        frames: frame_times.len(),
         resolution: outcome.resolution,
         holdout_frames: outcome.holdout_frames,
         holdout_times,
@@ -292,22 +293,18 @@ pub async fn complete(
         .await
 }
 
-/// Frames the clip keeps for fits (its context frames when it keeps none).
-fn kept_count(record: &ClipRecord) -> usize {
-    record
-        .kept_frames
-        .as_ref()
-        .map_or(record.context_times.len(), |k| k.times.len())
-}
-
-/// The time of the fit's `k`-th frame.
-fn kept_time(record: &ClipRecord, settings: &FitSettings, k: usize) -> Option<f64> {
+/// The times of the frames a fit of `record` under `settings` supervises with, in order (its kept
+/// frames, or its context frames when it keeps none, spread to `max_frames`): what
+/// [`build_work`] sends and what a worker's frame indices refer to.
+fn fit_frame_times(record: &ClipRecord, settings: &FitSettings) -> Vec<f64> {
     let times = record
         .kept_frames
         .as_ref()
         .map_or(&record.context_times, |kept| &kept.times);
-    let chosen = spread(times.len(), settings.max_frames);
-    chosen.get(k).map(|&i| times[i])
+    spread(times.len(), settings.max_frames)
+        .into_iter()
+        .map(|i| times[i])
+        .collect()
 }
 
 /// `k` of `n` indices spread evenly, first and last included (all of them when `k ≥ n`).
