@@ -511,7 +511,12 @@ fn a_full_encode_pool_refuses_at_once_with_retry_after() {
     let (frames, times) = synthetic_clip();
     std::thread::scope(|scope| {
         let slow = scope.spawn(|| {
-            Client::new()
+            // Slow on purpose: a busy CI machine reading a real video in a debug server may
+            // take longer than a client's default 30 s.
+            Client::builder()
+                .timeout(std::time::Duration::from_secs(180))
+                .build()
+                .unwrap()
                 .post(server.at("/v1/clips?max_frames=8"))
                 .body(video)
                 .send()
