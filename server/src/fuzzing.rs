@@ -13,6 +13,18 @@
 //! - [`Edge`]: the real router (REST and gRPC on one service, as `c4g-server` serves them) over
 //!   a real model and store, with one clip uploaded; requests go through the handlers'
 //!   extractors, the JSON rules, camera, trajectory, quality and time checks, and the decoder.
+//! - [`gaussian_files`] (`files`): the readers and writers of Gaussian files and payloads.
+//! - [`time_policy`]: the time policies on any context and target.
+//!
+//! The fuzz targets call these; so does `server/tests/fuzz_corpora.rs`, which replays every
+//! committed corpus and regression input through the ordinary test build (CI's check of them,
+//! with no instrumented build); `scripts/fuzz` does the fuzzing.
+
+mod files;
+mod time_policy;
+
+pub use files::gaussian_files;
+pub use time_policy::time_policy;
 
 use std::path::PathBuf;
 use std::sync::OnceLock;
