@@ -8,7 +8,7 @@
 //!         [--frames DIR (../shared/data/bedroom/frames)] [--fps 30] [--name bedroom] \
 //!         [--model models/c4g-tiny] [--presets fast,default] [--random fast] \
 //!         [--steps N (overrides the presets' steps)] [--budget S (their time budget)]
-//!         [--static-pixels P (the static tolerance in pixels)] [--smoothness W] [--resolution PX]
+//!         [--static-pixels P (the static tolerance in pixels)] [--still-threshold T (0: off)] [--smoothness W] [--resolution PX]
 //!         [--keyframe-every N] [--refine-cameras true] [--csv FILE]
 //!
 //! A video is decoded to a folder of frames beforehand (`ffmpeg -i clip.mp4 DIR/%05d.png`).
@@ -55,6 +55,7 @@ struct Args {
     steps: Option<u64>,
     budget: Option<f64>,
     static_pixels: Option<f64>,
+    still_threshold: Option<f64>,
     smoothness: Option<f64>,
     refine_cameras: bool,
     resolution: Option<u32>,
@@ -81,6 +82,7 @@ fn args() -> Args {
         steps: None,
         budget: None,
         static_pixels: None,
+        still_threshold: None,
         smoothness: None,
         refine_cameras: false,
         resolution: None,
@@ -100,6 +102,7 @@ fn args() -> Args {
             "--steps" => a.steps = Some(v.parse().expect("--steps")),
             "--budget" => a.budget = Some(v.parse().expect("--budget")),
             "--static-pixels" => a.static_pixels = Some(v.parse().expect("--static-pixels")),
+            "--still-threshold" => a.still_threshold = Some(v.parse().expect("--still-threshold")),
             "--refine-cameras" => a.refine_cameras = v == "true",
             "--smoothness" => a.smoothness = Some(v.parse().expect("--smoothness")),
             "--resolution" => a.resolution = Some(v.parse().expect("--resolution")),
@@ -403,6 +406,9 @@ fn run(
     let mut options = settings.options(extent);
     if let Some(p) = a.static_pixels {
         options.static_pixels = p;
+    }
+    if let Some(t) = a.still_threshold {
+        options.still_threshold = t;
     }
     if let Some(w) = a.smoothness {
         options.smoothness = w;

@@ -64,6 +64,7 @@ use crate::cameras::CameraRefinement;
 use crate::error::FitError;
 use crate::keyframe_params::KeyframeParams;
 use crate::scene::FittedScene;
+use crate::still::StillPixels;
 
 /// One source frame of the clip.
 #[derive(Debug, Clone, PartialEq)]
@@ -106,6 +107,10 @@ pub struct FitOptions {
     /// … or this many pixels wide at its depth, as the first training frame's camera sees it
     /// (0: `static_tolerance` alone).
     pub static_pixels: f64,
+    /// Frames from one still camera: a pixel whose colour's standard deviation over the
+    /// training frames is under this in every channel is still, and a Gaussian that stays on
+    /// still pixels at every keyframe is tied whatever its motion (`crate::still`; 0: off).
+    pub still_threshold: f64,
     /// Look for static Gaussians before the first step and every this many steps (0: only at
     /// the end). One found is tied for the rest of the fit: its keyframes share one value and
     /// one gradient (the sum of theirs), so it cannot drift apart again.
@@ -147,6 +152,7 @@ impl Default for FitOptions {
             prior_fade_steps: 100,
             static_tolerance: 1e-3,
             static_pixels: 1.0,
+            still_threshold: 0.02,
             static_every: 50,
             eval_every: 0,
             densify: None,
@@ -267,6 +273,7 @@ pub fn fit(
         fitting.cameras = Some(CameraRefinement::new(given.clone(), options.adam));
     }
     if options.static_every > 0 && options.steps > 0 {
+        fitting.still = StillPixels::measure(frames, &train, options.still_threshold);
         fitting.tie_static();
     }
     let mut rng = SplitMix(options.seed);
@@ -412,6 +419,8 @@ struct Fitting<'o> {
     tied: Vec<bool>,
     /// The camera whose pixel at a Gaussian's depth is the static tolerance.
     view: Camera,
+    /// The still camera's still pixels, if the frames come from one.
+    still: Option<StillPixels>,
     /// The gradient, reused from step to step.
     grad: KeyframeParams,
     /// Per row of a tied Gaussian: what its keyframe's position was pulled by since the tie
@@ -458,6 +467,7 @@ impl<'o> Fitting<'o> {
             times: start.times.clone(),
             options,
             view: *view,
+            still: None,
         })
     }
 
@@ -482,8 +492,9 @@ impl<'o> Fitting<'o> {
         FittedScene::new(keyframes)?.at(t)
     }
 
-    /// Ties every Gaussian static now that the frames have not shown to move ([`tie_static`]),
-    /// each with its evidence cleared.
+    /// Ties every Gaussian static now that the frames have not shown to move ([`tie_static`])
+    /// or that stays on still pixels at every keyframe ([`StillPixels`]), each with its
+    /// evidence cleared.
     fn tie_static(&mut self) {
         let before = self.tied.clone();
         tie_static(
@@ -493,6 +504,23 @@ impl<'o> Fitting<'o> {
             &self.view,
             self.options,
         );
+        if let Some(still) = &self.still {
+            let kf = self.params.keyframes();
+            for i in 0..self.tied.len() {
+                if self.tied[i] || self.moving[i] {
+                    continue;
+                }
+                let on_still = (0..kf).all(|k| {
+                    still.holds(std::array::from_fn(|j| {
+                        self.params.value(Group::Position, i, k, j)
+                    }))
+                });
+                if on_still {
+                    self.tied[i] = true;
+                    share(&mut self.params, i);
+                }
+            }
+        }
         let kf = self.params.keyframes();
         for (i, _) in before
             .iter()

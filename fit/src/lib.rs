@@ -7,6 +7,7 @@
 //! - [`backward`]: the gradient of `at(t)` with respect to the keyframe parameters;
 //! - [`fit`](mod@fit): the loop ([`fit()`]): frames, holdout, loss, regularisers, Adam,
 //!   densification, static Gaussians, the report and progress;
+//! - `still`: the pixels a still camera's frames never change, whose Gaussians are static;
 //! - `cameras`: refining the training frames' cameras with the scene
 //!   ([`FitOptions::refine_cameras`]);
 //! - [`cover`]: [`cover_frame`], Gaussians for the part of the source frame outside the model's
@@ -31,6 +32,7 @@ pub mod fit;
 pub mod keyframe_params;
 pub mod preset;
 pub mod scene;
+mod still;
 
 pub use backward::{Blend, chain};
 pub use cover::cover_frame;
