@@ -27,9 +27,11 @@
 //! and a tolerance applied at the end finds nothing static. Before the first step and every
 //! [`FitOptions::static_every`] steps, a Gaussian whose keyframe positions lie in a ball
 //! [`FitOptions::static_pixels`] pixels wide at its depth (at least
-//! [`FitOptions::static_tolerance`]) is **tied**: its keyframes take their mean, and from then on
-//! they share one gradient (the sum of theirs) and, after every step, one value, so it cannot
-//! drift. Tying before the first step trusts the start's motion, which a weak feed-forward answer
+//! [`FitOptions::static_tolerance`]), or, when the frames come from one still camera, one that
+//! stays on still pixels at every keyframe (`crate::still`: the frames themselves say that
+//! nothing there moves, whatever the start's jitter), is **tied**: its keyframes take their
+//! mean, and from then on they share one gradient (the sum of theirs) and, after every step, one
+//! value, so it cannot drift. Tying before the first step trusts the start's motion, which a weak feed-forward answer
 //! underestimates (a panning camera seen as still moves the whole scene); so the frames get the
 //! last word: a tied Gaussian whose keyframes the frames keep pulling apart, consistently in one
 //! direction (`untie_moving`), is untied for good. Copies made by densification inherit their
@@ -506,6 +508,8 @@ impl<'o> Fitting<'o> {
         );
         if let Some(still) = &self.still {
             let kf = self.params.keyframes();
+            // One the frames untied stays free: tying it again on still pixels was measured
+            // (dog, `default`): 41 % static where 35 %, and 0.15 dB lower.
             for i in 0..self.tied.len() {
                 if self.tied[i] || self.moving[i] {
                     continue;
