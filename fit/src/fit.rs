@@ -275,7 +275,11 @@ pub fn fit(
         fitting.cameras = Some(CameraRefinement::new(given.clone(), options.adam));
     }
     if options.static_every > 0 && options.steps > 0 {
-        fitting.still = StillPixels::measure(frames, &train, options.still_threshold);
+        let seen: Vec<(Camera, &[f32])> = train
+            .iter()
+            .map(|&i| (frames[i].camera, frames[i].rgb.as_slice()))
+            .collect();
+        fitting.still = StillPixels::measure(&seen, options.still_threshold);
         fitting.tie_static();
     }
     let mut rng = SplitMix(options.seed);

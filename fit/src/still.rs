@@ -14,8 +14,6 @@
 use c4g_scene::Camera;
 use glam::Vec3;
 
-use crate::fit::Frame;
-
 /// Which pixels of the one camera's image are still.
 #[derive(Debug, Clone)]
 pub(crate) struct StillPixels {
@@ -24,26 +22,29 @@ pub(crate) struct StillPixels {
 }
 
 impl StillPixels {
-    /// The still pixels of `frames[which]`, or `None` when they are not all from one camera
-    /// (or fewer than two, or `threshold` is not positive).
-    pub(crate) fn measure(frames: &[Frame], which: &[usize], threshold: f64) -> Option<Self> {
-        let first = frames.get(*which.first()?)?;
-        let camera = first.camera;
-        if which.len() < 2 || threshold <= 0.0 || which.iter().any(|&i| frames[i].camera != camera)
+    /// The still pixels of `frames` (each its camera and its RGB, 3 floats a pixel), or `None`
+    /// when they are not all from one camera (or fewer than two, or `threshold` is not
+    /// positive).
+    pub(crate) fn measure(frames: &[(Camera, &[f32])], threshold: f64) -> Option<Self> {
+        let &(camera, first) = frames.first()?;
+        if frames.len() < 2
+            || threshold <= 0.0
+            || frames
+                .iter()
+                .any(|(c, rgb)| *c != camera || rgb.len() != first.len())
         {
             return None;
         }
-        let values = first.rgb.len();
-        let mut sum = vec![0.0f64; values];
-        let mut squares = vec![0.0f64; values];
-        for &i in which {
-            for ((s, q), &v) in sum.iter_mut().zip(&mut squares).zip(&frames[i].rgb) {
+        let mut sum = vec![0.0f64; first.len()];
+        let mut squares = vec![0.0f64; first.len()];
+        for (_, rgb) in frames {
+            for ((s, q), &v) in sum.iter_mut().zip(&mut squares).zip(rgb.iter()) {
                 let v = f64::from(v);
                 *s += v;
                 *q += v * v;
             }
         }
-        let n = which.len() as f64;
+        let n = frames.len() as f64;
         let limit = threshold * threshold;
         let still = sum
             .chunks_exact(3)
@@ -76,7 +77,8 @@ impl StillPixels {
     }
 
     /// The share of pixels that are still.
-    pub(crate) fn fraction(&self) -> f64 {
+    #[cfg(test)]
+    fn fraction(&self) -> f64 {
         self.still.iter().filter(|s| **s).count() as f64 / self.still.len().max(1) as f64
     }
 }
@@ -107,17 +109,17 @@ mod tests {
             let mut rgb = vec![0.5f32; 8 * 8 * 3];
             for y in 0..8 {
                 for c in 0..3 {
-                    rgb[(y * 8 + 6) * 3 + c] = if t % 2 == 0 { 0.2 } else { 0.8 };
+                    rgb[(y * 8 + 6) * 3 + c] = if t.is_multiple_of(2) { 0.2 } else { 0.8 };
                 }
             }
-            Frame {
-                time: t as f64,
-                rgb,
-                camera: camera(),
-            }
+            rgb
         };
-        let frames: Vec<Frame> = (0..4).map(frame).collect();
-        let still = StillPixels::measure(&frames, &[0, 1, 2, 3], 0.02).unwrap();
+        let images: Vec<Vec<f32>> = (0..4).map(frame).collect();
+        let frames: Vec<(Camera, &[f32])> = images
+            .iter()
+            .map(|rgb| (camera(), rgb.as_slice()))
+            .collect();
+        let still = StillPixels::measure(&frames, 0.02).unwrap();
         assert_eq!(still.fraction(), 56.0 / 64.0);
         // The camera looks down +z: x = 0 is column 4, x = 0.25·z is column 6.
         assert!(still.holds([-0.1, 0.0, 2.0]));
@@ -125,7 +127,7 @@ mod tests {
         assert!(!still.holds([0.3, 0.0, 2.0]), "beside it");
         assert!(!still.holds([0.0, 0.0, -2.0]), "behind the camera");
         let mut moved = frames.clone();
-        moved[1].camera = Camera::from_world_to_camera_matrix(
+        moved[1].0 = Camera::from_world_to_camera_matrix(
             Intrinsics {
                 fx: 9.0,
                 ..*camera().intrinsics()
@@ -133,6 +135,6 @@ mod tests {
             Default::default(),
         )
         .unwrap();
-        assert!(StillPixels::measure(&moved, &[0, 1, 2, 3], 0.02).is_none());
+        assert!(StillPixels::measure(&moved, 0.02).is_none());
     }
 }
