@@ -335,9 +335,12 @@ fn decode_via(port: u16, id: &str) -> u16 {
 fn submit_via(port: u16, clip: &str) -> String {
     let response = Client::new()
         .post(format!("http://127.0.0.1:{port}/v1/clips/{clip}/refine"))
+        // 120 steps: long enough (seconds) that the victim's worker is still inside a job
+        // when it is killed; at 12 a job took 0.3 s once the image crates were optimised in
+        // debug builds, and the kill could find none running.
         .json(
             &json!({"trajectory": {"kind": "orbit", "depth": 2.0, "angle_degrees": 10},
-                      "steps": 12, "seed": 7}),
+                      "steps": 120, "seed": 7}),
         )
         .send()
         .unwrap();
