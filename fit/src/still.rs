@@ -6,7 +6,8 @@
 //!
 //! A pixel is still when its colour's standard deviation over the training frames, in every
 //! channel, is under a threshold ([`crate::FitOptions::still_threshold`], 0.02 of full scale:
-//! above sensor noise and compression, below any visible motion). Measured at 128×72, 0.02 finds
+//! above sensor noise and compression, below any visible motion). Counted once (NumPy, frames
+//! box-shrunk to 128×72; no script in the repository), 0.02 finds
 //! 60 % of the dog clip's tripod shot still and 2 % of the bedroom clip's handheld pan (its flat
 //! walls). Only for a still camera: frames from different cameras see different things at a
 //! pixel, so there are no still pixels then.
