@@ -137,16 +137,15 @@ fn check(value: &mut Value, depth: usize) -> Result<(), Refusal> {
 
 /// A float with no fraction, within the integers serde reads, as that integer (`5.0` → `5`).
 ///
-/// serde_json (without its `float_roundtrip` feature) reads a long float to within one unit in
-/// its last place, so `1990241308034915.0` can arrive as `1990241308034915.25`: a float that
-/// close to a whole number is that number.
+/// Exact: serde_json reads with its `float_roundtrip` feature (the workspace's `Cargo.toml`), so a
+/// float arrives as the nearest f64 to what was written and only one with no fraction at all is
+/// whole. A float within an ulp of a whole number is still a float (`-999999.9999999999` is not
+/// `-1000000`, which a bound of "above -1e6" refuses).
 fn whole_number(n: &serde_json::Number) -> Option<Value> {
     let v = n.as_f64().filter(|_| n.is_f64())?;
-    let whole = v.round();
-    if (v - whole).abs() > v.abs() * f64::EPSILON {
+    if v.fract() != 0.0 {
         return None;
     }
-    let v = whole;
     // Exact: both bounds are powers of two, and every float between them with no fraction is an
     // integer of the type.
     if (0.0..18_446_744_073_709_551_616.0).contains(&v) {
@@ -457,10 +456,16 @@ mod tests {
         );
         assert!(parse::<Counts>(br#"{"count": 5.5, "seed": 0, "shift": 0}"#).is_err());
         assert!(parse::<Counts>(br#"{"count": 1e20, "seed": 0, "shift": 0}"#).is_err());
-        // A long float that serde_json reads a unit in its last place off still counts.
+        // A long float is read exactly (float_roundtrip): whole when written whole …
         let long: Counts =
             parse(br#"{"count": 0, "seed": 1990241308034915.0, "shift": 0}"#).unwrap();
         assert_eq!(long.seed, 1_990_241_308_034_915);
+        // … and a float an ulp from a whole number stays that float (schemathesis sent a
+        // control_scale of -999999.9999999999 against a bound of "above -1e6", which read as
+        // -1e6 when floats that close counted as whole).
+        let near: Counts =
+            parse(br#"{"count": 0, "seed": 0, "shift": -999999.9999999999}"#).unwrap();
+        assert!(near.shift > -1e6, "{}", near.shift);
     }
 
     #[test]
