@@ -60,6 +60,7 @@ use c4g_renderer::{
     RenderOptions,
 };
 use c4g_scene::{Camera, GaussianSet};
+use rayon::prelude::*;
 
 use crate::backward::{Blend, chain};
 use crate::cameras::CameraRefinement;
@@ -67,6 +68,14 @@ use crate::error::FitError;
 use crate::keyframe_params::KeyframeParams;
 use crate::scene::FittedScene;
 use crate::still::StillPixels;
+
+/// Values a thread takes at a time in the per-step passes over every parameter. Those passes
+/// (Adam's step, the regularisers, ties, the box) touch every keyframe's copy of every Gaussian;
+/// run on one thread they took about as long as the threaded render and backward. Each is element
+/// by element or Gaussian by Gaussian, so the split cannot change a bit of the result.
+const CHUNK: usize = 1 << 14;
+/// Gaussians a thread takes at a time in the per-Gaussian passes.
+const GAUSSIANS_A_TASK: usize = 256;
 
 /// One source frame of the clip.
 #[derive(Debug, Clone, PartialEq)]
@@ -552,18 +561,25 @@ impl<'o> Fitting<'o> {
             .enumerate()
             .filter(|(_, c)| *c != 0.0)
             .collect();
-        for (i, _) in self.tied.iter().enumerate().filter(|(_, t)| **t) {
-            for &(k, c) in &keys {
-                let pull: [f64; 3] = std::array::from_fn(|j| g.value(Group::Position, i, k, j));
-                let e = &mut self.evidence[self.params.row_index(i, k)];
-                for (s, p) in e.sum.iter_mut().zip(pull) {
-                    *s += p;
+        let kf = self.params.keyframes();
+        self.evidence
+            .par_chunks_mut(kf)
+            .zip(g.params.group(Group::Position).par_chunks(3 * kf))
+            .zip(self.tied.par_iter())
+            .with_min_len(GAUSSIANS_A_TASK)
+            .filter(|(_, tied)| **tied)
+            .for_each(|((evidence, position), _)| {
+                for &(k, c) in &keys {
+                    let pull = &position[3 * k..3 * k + 3];
+                    let e = &mut evidence[k];
+                    for (s, p) in e.sum.iter_mut().zip(pull) {
+                        *s += p;
+                    }
+                    e.norms += pull.iter().map(|p| p * p).sum::<f64>().sqrt();
+                    e.weight += c;
+                    e.frames += u32::from(c.abs() > 0.25);
                 }
-                e.norms += pull.iter().map(|p| p * p).sum::<f64>().sqrt();
-                e.weight += c;
-                e.frames += u32::from(c.abs() > 0.25);
-            }
-        }
+            });
     }
 
     /// Unties the tied Gaussians the frames want to move: some keyframe pulled, beyond its share
@@ -602,28 +618,42 @@ impl<'o> Fitting<'o> {
         if kf < 2 {
             return;
         }
-        for (i, _) in self.tied.iter().enumerate().filter(|(_, t)| **t) {
-            for group in Group::ALL {
-                for j in 0..group.width() {
-                    let sum: f64 = (0..kf).map(|k| g.value(group, i, k, j)).sum();
-                    for k in 0..kf {
-                        *g.value_mut(group, i, k, j) = sum;
+        for group in Group::ALL {
+            let w = group.width();
+            g.params
+                .group_mut(group)
+                .par_chunks_mut(kf * w)
+                .zip(self.tied.par_iter())
+                .with_min_len(GAUSSIANS_A_TASK)
+                .filter(|(_, tied)| **tied)
+                .for_each(|(rows, _)| {
+                    for j in 0..w {
+                        let sum: f64 = (0..kf).map(|k| rows[k * w + j]).sum();
+                        for k in 0..kf {
+                            rows[k * w + j] = sum;
+                        }
                     }
-                }
-            }
+                });
         }
     }
 
     /// A tied Gaussian's keyframes after Adam's step: one value, their mean (Adam's moments of
     /// the rows may differ from before the tie).
     fn tie_values(&mut self) {
-        if self.params.keyframes() < 2 {
+        let kf = self.params.keyframes();
+        if kf < 2 {
             return;
         }
-        for i in 0..self.tied.len() {
-            if self.tied[i] {
-                share(&mut self.params, i);
-            }
+        for group in Group::ALL {
+            let w = group.width();
+            self.params
+                .params
+                .group_mut(group)
+                .par_chunks_mut(kf * w)
+                .zip(self.tied.par_iter())
+                .with_min_len(GAUSSIANS_A_TASK)
+                .filter(|(_, tied)| **tied)
+                .for_each(|(rows, _)| share_rows(group, rows, kf));
         }
     }
 
@@ -663,7 +693,10 @@ impl<'o> Fitting<'o> {
         );
         if g.params.len() == self.params.params.len() && g.keyframes() == self.params.keyframes() {
             for group in Group::ALL {
-                g.params.group_mut(group).fill(0.0);
+                g.params
+                    .group_mut(group)
+                    .par_chunks_mut(CHUNK)
+                    .for_each(|c| c.fill(0.0));
             }
         } else {
             g = zeros_like(&self.params);
@@ -679,11 +712,14 @@ impl<'o> Fitting<'o> {
         };
         add_prior(&self.params, &self.prior, o.prior * fade, &mut g);
         for group in Group::ALL {
-            for v in g.params.group_mut(group) {
-                if !v.is_finite() {
-                    *v = 0.0;
-                }
-            }
+            g.params
+                .group_mut(group)
+                .par_chunks_mut(CHUNK)
+                .for_each(|c| {
+                    c.iter_mut()
+                        .filter(|v| !v.is_finite())
+                        .for_each(|v| *v = 0.0)
+                });
         }
         self.tie_gradient(&mut g);
         if let Some(max) = o.clip_norm {
@@ -765,19 +801,24 @@ pub(crate) fn add_smoothness(
     let h: Vec<f64> = times.windows(2).map(|w| w[1] - w[0]).collect();
     let mean_h = h.iter().sum::<f64>() / h.len() as f64;
     let scale = 2.0 * weight / n as f64;
-    for i in 0..n {
-        for j in 0..3 {
-            let p = |key: usize| params.value(Group::Position, i, key, j);
-            for key in 1..k - 1 {
-                let (hl, hr) = (h[key - 1], h[key]);
-                let a = mean_h * ((p(key + 1) - p(key)) / hr - (p(key) - p(key - 1)) / hl);
-                let c = scale * a * mean_h;
-                *out.value_mut(Group::Position, i, key + 1, j) += c / hr;
-                *out.value_mut(Group::Position, i, key, j) -= c * (1.0 / hr + 1.0 / hl);
-                *out.value_mut(Group::Position, i, key - 1, j) += c / hl;
+    out.params
+        .group_mut(Group::Position)
+        .par_chunks_mut(3 * k)
+        .zip(params.params.group(Group::Position).par_chunks(3 * k))
+        .with_min_len(GAUSSIANS_A_TASK)
+        .for_each(|(out, position)| {
+            for j in 0..3 {
+                let p = |key: usize| position[3 * key + j];
+                for key in 1..k - 1 {
+                    let (hl, hr) = (h[key - 1], h[key]);
+                    let a = mean_h * ((p(key + 1) - p(key)) / hr - (p(key) - p(key - 1)) / hl);
+                    let c = scale * a * mean_h;
+                    out[3 * (key + 1) + j] += c / hr;
+                    out[3 * key + j] -= c * (1.0 / hr + 1.0 / hl);
+                    out[3 * (key - 1) + j] += c / hl;
+                }
             }
-        }
-    }
+        });
 }
 
 /// Adds the gradient of `weight/N · |θ − θ₀|²` over every parameter.
@@ -789,9 +830,15 @@ fn add_prior(params: &KeyframeParams, prior: &Params, weight: f64, out: &mut Key
     let scale = 2.0 * weight / n as f64;
     for g in Group::ALL {
         let (p, p0) = (params.params.group(g), prior.group(g));
-        for ((o, v), v0) in out.params.group_mut(g).iter_mut().zip(p).zip(p0) {
-            *o += scale * (v - v0);
-        }
+        out.params
+            .group_mut(g)
+            .par_chunks_mut(CHUNK)
+            .zip(p.par_chunks(CHUNK).zip(p0.par_chunks(CHUNK)))
+            .for_each(|(o, (p, p0))| {
+                for ((o, v), v0) in o.iter_mut().zip(p).zip(p0) {
+                    *o += scale * (v - v0);
+                }
+            });
     }
 }
 
@@ -800,9 +847,11 @@ fn keep_in_box(params: &mut Params, extent: f64) {
     let reach = 1e4 * extent;
     let largest = (100.0 * extent).ln();
     let clamp = |p: &mut Params, g: Group, lo: f64, hi: f64| {
-        for v in p.group_mut(g) {
-            *v = if v.is_finite() { v.clamp(lo, hi) } else { 0.0 };
-        }
+        p.group_mut(g).par_chunks_mut(CHUNK).for_each(|c| {
+            for v in c {
+                *v = if v.is_finite() { v.clamp(lo, hi) } else { 0.0 };
+            }
+        });
     };
     clamp(params, Group::Position, -reach, reach);
     clamp(params, Group::LogScale, LOG_SCALE_MIN, largest);
@@ -958,41 +1007,40 @@ fn spread(params: &KeyframeParams, i: usize) -> ([f64; 3], f64) {
     (mean, farthest)
 }
 
-/// Gaussian `i`'s keyframe values replaced by their mean (quaternions on keyframe 0's side,
-/// renormalised); written as `x₀ + mean(x_k − x₀)` so values already equal stay bit for bit.
+/// Gaussian `i`'s keyframes as one value ([`share_rows`] in every group).
 fn share(params: &mut KeyframeParams, i: usize) {
     let kf = params.keyframes();
-    let q0: Vec<f64> = (0..4)
-        .map(|j| params.value(Group::Rotation, i, 0, j))
-        .collect();
-    for k in 1..kf {
-        let dot: f64 = (0..4)
-            .map(|j| q0[j] * params.value(Group::Rotation, i, k, j))
-            .sum();
-        if dot < 0.0 {
-            for j in 0..4 {
-                *params.value_mut(Group::Rotation, i, k, j) *= -1.0;
+    for group in Group::ALL {
+        let w = group.width();
+        let rows = &mut params.params.group_mut(group)[i * kf * w..(i + 1) * kf * w];
+        share_rows(group, rows, kf);
+    }
+}
+
+/// One Gaussian's `kf` keyframe rows of `group` (`rows`, keyframe-major) replaced by their mean
+/// (quaternions first turned to keyframe 0's side, the mean renormalised); written as
+/// `x₀ + mean(x_k − x₀)` so values already equal stay bit for bit.
+fn share_rows(group: Group, rows: &mut [f64], kf: usize) {
+    let w = group.width();
+    if group == Group::Rotation {
+        for k in 1..kf {
+            let dot: f64 = (0..4).map(|j| rows[j] * rows[k * w + j]).sum();
+            if dot < 0.0 {
+                rows[k * w..k * w + w].iter_mut().for_each(|v| *v *= -1.0);
             }
         }
     }
-    for g in Group::ALL {
-        for j in 0..g.width() {
-            let x0 = params.value(g, i, 0, j);
-            let mean = x0 + (0..kf).map(|k| params.value(g, i, k, j) - x0).sum::<f64>() / kf as f64;
-            for k in 0..kf {
-                *params.value_mut(g, i, k, j) = mean;
-            }
-        }
-    }
-    let norm = (0..4)
-        .map(|j| params.value(Group::Rotation, i, 0, j).powi(2))
-        .sum::<f64>()
-        .sqrt();
-    if norm > 0.0 && (norm - 1.0).abs() > 1e-12 {
+    for j in 0..w {
+        let x0 = rows[j];
+        let mean = x0 + (0..kf).map(|k| rows[k * w + j] - x0).sum::<f64>() / kf as f64;
         for k in 0..kf {
-            for j in 0..4 {
-                *params.value_mut(Group::Rotation, i, k, j) /= norm;
-            }
+            rows[k * w + j] = mean;
+        }
+    }
+    if group == Group::Rotation {
+        let norm = (0..4).map(|j| rows[j].powi(2)).sum::<f64>().sqrt();
+        if norm > 0.0 && (norm - 1.0).abs() > 1e-12 {
+            rows.iter_mut().for_each(|v| *v /= norm);
         }
     }
 }

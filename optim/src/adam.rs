@@ -4,10 +4,14 @@
 
 use std::path::Path;
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::params::{Group, Params};
 use c4g_scene::SceneError;
+
+/// Values a thread steps at a time.
+const CHUNK: usize = 1 << 14;
 
 /// Adam's constants.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -86,7 +90,10 @@ impl Adam {
                 },
             });
         }
-        if grads.values().any(|v| !v.is_finite()) {
+        if Group::ALL
+            .iter()
+            .any(|&g| grads.group(g).par_iter().any(|v| !v.is_finite()))
+        {
             return Err(SceneError::InvalidImage(
                 "a gradient is not finite: Adam refuses to step".into(),
             ));
@@ -95,15 +102,22 @@ impl Adam {
         let AdamConfig { beta1, beta2, eps } = self.config;
         let c1 = 1.0 - beta1.powf(self.step as f64);
         let c2 = 1.0 - beta2.powf(self.step as f64);
+        // Element by element, so the threads' split cannot change a bit of the result; a fit's
+        // per-step work is mostly this and the renderer's, which is threaded too.
         for g in Group::ALL {
             let lr = rates[g.index()];
             let (p, grad) = (params.group_mut(g), grads.group(g));
             let (m, v) = (self.m.group_mut(g), self.v.group_mut(g));
-            for k in 0..p.len() {
-                m[k] = beta1 * m[k] + (1.0 - beta1) * grad[k];
-                v[k] = beta2 * v[k] + (1.0 - beta2) * grad[k] * grad[k];
-                p[k] -= lr * (m[k] / c1) / ((v[k] / c2).sqrt() + eps);
-            }
+            p.par_chunks_mut(CHUNK)
+                .zip(grad.par_chunks(CHUNK))
+                .zip(m.par_chunks_mut(CHUNK).zip(v.par_chunks_mut(CHUNK)))
+                .for_each(|((p, grad), (m, v))| {
+                    for k in 0..p.len() {
+                        m[k] = beta1 * m[k] + (1.0 - beta1) * grad[k];
+                        v[k] = beta2 * v[k] + (1.0 - beta2) * grad[k] * grad[k];
+                        p[k] -= lr * (m[k] / c1) / ((v[k] / c2).sqrt() + eps);
+                    }
+                });
         }
         Ok(())
     }

@@ -15,6 +15,7 @@
 //! [`Params`] is one flat column per [`Group`]; a [`GaussianGradients`] becomes a `Params` of the
 //! same layout ([`Params::from_gradients`]), which is what [`crate::Adam`] steps with.
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use c4g_renderer::GaussianGradients;
@@ -212,12 +213,15 @@ impl Params {
     /// Rescales every stored quaternion to unit norm (a zero one is left alone): the rendered set
     /// does not change, and the norms stay where the gradient's `1/|q|` scale is 1.
     pub fn normalize_rotations(&mut self) {
-        for q in self.columns[Group::Rotation.index()].chunks_exact_mut(4) {
-            let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-            if n > 0.0 {
-                q.iter_mut().for_each(|v| *v /= n);
-            }
-        }
+        self.columns[Group::Rotation.index()]
+            .par_chunks_exact_mut(4)
+            .with_min_len(1 << 12)
+            .for_each(|q| {
+                let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+                if n > 0.0 {
+                    q.iter_mut().for_each(|v| *v /= n);
+                }
+            });
     }
 
     /// The L2 norm over every value of every group.
