@@ -98,7 +98,7 @@ pub struct Config {
     pub max_context_frames: usize,
     /// Source frames kept with each clip (spread over its window, small) for fits to supervise
     /// with; 0 keeps none, and fits then see the context frames alone.
-    #[arg(long, env = "C4G_KEPT_FRAMES", default_value_t = 48)]
+    #[arg(long, env = "C4G_KEPT_FRAMES", default_value_t = 300)]
     pub kept_frames: usize,
     /// Long side, pixels, of the kept source frames (the sharpest a fit can work at).
     #[arg(long, env = "C4G_KEPT_FRAME_SIDE", default_value_t = 256)]

@@ -3,15 +3,16 @@
 //! the context frames (the video's one decoding pass, the archive's one read), spread evenly over
 //! the window (every frame of a shorter clip), and are kept small: at most `count` of them, at
 //! most `side` pixels on the long side. A kept frame is held at source size only until it is
-//! shrunk; their count is bounded by [`HELD_BYTES`] of source-size frames, so a 4K upload keeps
-//! fewer. On disk they cost about `count` small PNGs a clip (48 frames at 256×144: 2-4 MB).
+//! shrunk, which is as it is decoded (the context frames alone are held at source size together);
+//! their count is bounded by [`HELD_BYTES`] of shrunk frames. On disk they cost a PNG each (the
+//! dog clip's at 256×144: 73 KB, 21 MB for its 289).
 
 use image::{DynamicImage, RgbImage};
 
 use super::media::IntakeOptions;
 use super::sampling::window;
 
-/// Most bytes of source-size frames kept at once.
+/// Most bytes of shrunk frames kept at once (2,427 frames at 256×144).
 pub const HELD_BYTES: u64 = 256 << 20;
 
 /// How many source frames to keep, and how small.
@@ -35,7 +36,8 @@ impl Keep {
         width: u32,
         height: u32,
     ) -> Vec<usize> {
-        let frame_bytes = u64::from(width) * u64::from(height) * 3;
+        let (w, h) = c4g_fit::working_size(width, height, self.side.max(1));
+        let frame_bytes = u64::from(w) * u64::from(h) * 3;
         let held = usize::try_from(HELD_BYTES / frame_bytes.max(1)).unwrap_or(usize::MAX);
         let count = self.count.min(held);
         if count == 0 || self.side == 0 {
@@ -128,13 +130,18 @@ mod tests {
         };
         let picked = keep.pick(&times, &window, 64, 64);
         assert!(picked.iter().all(|&i| (10..=20).contains(&i)), "{picked:?}");
-        // 4K frames: 256 MiB holds 10 of them.
-        assert_eq!(keep.pick(&times, &all, 4096, 2160).len(), 5);
+        // The bound counts frames as kept (shrunk): 48 4K frames shrunk to 64 px fit …
         let many = Keep {
             count: 48,
             side: 64,
         };
-        assert_eq!(many.pick(&times, &all, 4096, 2160).len(), 10);
+        assert_eq!(many.pick(&times, &all, 4096, 2160).len(), 48);
+        // … and 256 MiB holds 10 of them kept at 4K.
+        let large = Keep {
+            count: 48,
+            side: 4096,
+        };
+        assert_eq!(large.pick(&times, &all, 4096, 2160).len(), 10);
         assert!(Keep::NONE.pick(&times, &all, 64, 64).is_empty());
     }
 }

@@ -517,7 +517,17 @@ async fn decode_context(
     let mut wanted: Vec<usize> = chosen.iter().chain(kept_indices).copied().collect();
     wanted.sort_unstable();
     wanted.dedup();
-    let decoded = decode_frames(path, tools, width, height, &wanted).await?;
+    // A frame kept and not a context frame is shrunk as it comes out of the pipe, so only the
+    // context frames are ever held at source size together (`Keep::pick`'s bound).
+    let only_kept = |k: usize| !chosen.contains(&wanted[k]);
+    let decoded = decode_frames(path, tools, width, height, &wanted, &|k, image| {
+        if only_kept(k) {
+            keep.shrink(&image)
+        } else {
+            image
+        }
+    })
+    .await?;
     let reached = wanted.get(decoded.len()).copied().unwrap_or(usize::MAX);
     let kept: Vec<(usize, RgbImage)> = wanted
         .iter()
@@ -552,7 +562,7 @@ async fn decode_context(
     if plan.reuses_decoded {
         return Ok((plan.chosen, images, kept));
     }
-    let images = decode_frames(path, tools, width, height, &plan.chosen).await?;
+    let images = decode_frames(path, tools, width, height, &plan.chosen, &|_, image| image).await?;
     if images.len() < plan.chosen.len() {
         return Err(ends_before(plan.chosen[images.len()], None));
     }
@@ -602,19 +612,20 @@ fn ends_before(frame: usize, detail_text: Option<&str>) -> ServiceError {
 }
 
 /// Decodes the video to RGB at `width` × `height` and gives the frames at `chosen` (increasing
-/// indices into the listing), or the first of them when the video ends early.
+/// indices into the listing), or the first of them when the video ends early, each passed through
+/// `shape` (its position in `chosen`, the frame) as it is read.
 async fn decode_frames(
     path: &Path,
     tools: &IntakeTools,
     width: u32,
     height: u32,
     chosen: &[usize],
+    shape: &(dyn Fn(usize, RgbImage) -> RgbImage + Sync),
 ) -> Result<Vec<RgbImage>, ServiceError> {
     // Only the chosen frames are converted to RGB and piped: `select` drops the rest right
     // after decoding, and decoding stops after the last one. With `-reinit_filter 0` a size
     // change mid-stream does not rebuild the graph (which would restart `n`); `scale` brings
     // such frames to the first size.
-    let select: Vec<String> = chosen.iter().map(|i| format!("eq(n\\,{i})")).collect();
     let mut child = Command::new(&tools.ffmpeg)
         .args(["-v", "error", "-nostdin", "-threads", DECODER_THREADS])
         .args(["-reinit_filter", "0", "-i"])
@@ -622,7 +633,7 @@ async fn decode_frames(
         .args(["-map", &format!("0:{VIDEO_STREAM}"), "-vf"])
         .arg(format!(
             "select={},scale={width}:{height}",
-            select.join("+")
+            select_expression(chosen)
         ))
         .args(["-fps_mode", "passthrough", "-frames:v"])
         .arg(chosen.len().to_string())
@@ -650,7 +661,7 @@ async fn decode_frames(
         }
         let image = RgbImage::from_raw(width, height, buffer.clone())
             .ok_or_else(|| ServiceError::Internal("a decoded frame has the wrong size".into()))?;
-        images.push(image);
+        images.push(shape(images.len(), image));
     }
     drop(stdout);
     child
@@ -665,6 +676,39 @@ async fn decode_frames(
         return Err(ends_before(chosen[0], log.first.as_deref()));
     }
     Ok(images)
+}
+
+/// FFmpeg's `select` expression true at the frame numbers `chosen` (increasing): a run of
+/// consecutive numbers is one `between`, and the terms are summed as a balanced tree. FFmpeg's
+/// expression parser refuses a flat sum of more than about a hundred terms ("Error while parsing
+/// expression"), which 300 kept frames and the context frames make; the tree's depth is the
+/// logarithm of the count (2,000 terms parse).
+fn select_expression(chosen: &[usize]) -> String {
+    let mut terms = Vec::new();
+    let mut k = 0;
+    while k < chosen.len() {
+        let mut end = k;
+        while end + 1 < chosen.len() && chosen[end + 1] == chosen[end] + 1 {
+            end += 1;
+        }
+        terms.push(if end == k {
+            format!("eq(n\\,{})", chosen[k])
+        } else {
+            format!("between(n\\,{}\\,{})", chosen[k], chosen[end])
+        });
+        k = end + 1;
+    }
+    fn sum(terms: &[String]) -> String {
+        match terms {
+            [] => "0".into(),
+            [one] => one.clone(),
+            _ => {
+                let (a, b) = terms.split_at(terms.len() / 2);
+                format!("({}+{})", sum(a), sum(b))
+            }
+        }
+    }
+    sum(&terms)
 }
 
 /// What a child logged on stderr: how many lines, and the first, cleaned for the client.
@@ -745,6 +789,31 @@ fn clean_log_line(line: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_select_expression_joins_runs_and_nests_as_a_balanced_tree() {
+        assert_eq!(select_expression(&[4]), "eq(n\\,4)");
+        assert_eq!(
+            select_expression(&[0, 1, 2, 7, 9, 10]),
+            "(between(n\\,0\\,2)+(eq(n\\,7)+between(n\\,9\\,10)))"
+        );
+        assert_eq!(select_expression(&[]), "0");
+        // 1,000 separate frames nest ten deep, where a flat sum of over a hundred is refused.
+        let spread: Vec<usize> = (0..1000).map(|i| 2 * i).collect();
+        let expression = select_expression(&spread);
+        let mut depth = 0;
+        let mut deepest = 0;
+        for c in expression.chars() {
+            match c {
+                '(' => depth += 1,
+                ')' => depth -= 1,
+                _ => {}
+            }
+            deepest = deepest.max(depth);
+        }
+        assert!(deepest <= 12, "{deepest}");
+        assert_eq!(expression.matches("eq(").count(), 1000);
+    }
 
     #[test]
     fn missing_and_stuck_timestamps_advance_by_the_median_step() {
