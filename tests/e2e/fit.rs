@@ -208,6 +208,58 @@ fn a_fit_reports_progress_and_its_scene_is_served_over_rest_and_grpc_alike() {
         grpc_means, rest_means,
         "REST and gRPC serve the same fitted set"
     );
+
+    // Tracks read the fitted scene too, over both transports alike, and say so.
+    let tracks = |body: Value| {
+        client
+            .post(server.at(&format!("/v1/clips/{clip}/tracks")))
+            .json(&body)
+            .send()
+            .unwrap()
+    };
+    let query = json!([{"t": 0.0, "x": 32.0, "y": 32.0}]);
+    let rest_tracks = tracks(json!({"queries": query, "times": [t]}));
+    assert_eq!(rest_tracks.status(), 200);
+    assert_eq!(rest_tracks.headers()["x-c4g-scene"], "fitted");
+    let rest_tracks: Value = rest_tracks.json().unwrap();
+    let grpc_tracks = runtime.block_on(async {
+        let mut grpc = C4gClient::connect(server.url()).await.unwrap();
+        grpc.tracks(pb::TracksRequest {
+            clip_id: clip.clone(),
+            queries: vec![pb::TrackQuery {
+                time: 0.0,
+                x: 32.0,
+                y: 32.0,
+            }],
+            times: vec![t],
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner()
+    });
+    assert_eq!(grpc_tracks.scene, "fitted");
+    let rest_point = &rest_tracks["tracks"][0]["points"][0];
+    let grpc_point = &grpc_tracks.tracks[0].points[0];
+    assert_eq!(
+        (grpc_point.x, grpc_point.y),
+        (
+            rest_point["x"].as_f64().unwrap() as f32,
+            rest_point["y"].as_f64().unwrap() as f32
+        ),
+        "REST and gRPC follow the point alike"
+    );
+    // The feature tracker reads the feed-forward scene's lifted features: auto serves it, and
+    // says so; fitted is refused as any feature request is.
+    let features = tracks(json!({"queries": query, "times": [t], "tracker": "features"}));
+    assert_eq!(features.status(), 200);
+    assert_eq!(features.headers()["x-c4g-scene"], "feed-forward");
+    expect_error(
+        tracks(json!({"queries": query, "tracker": "features", "scene": "fitted"})),
+        422,
+        "unsupported",
+        "features",
+    );
 }
 
 #[test]

@@ -49,7 +49,13 @@ pub async fn tracks(
         prune: request.prune,
         scene: request.scene,
     };
-    let served = service.sets.resolve_scene(&id, &mut quality, false).await?;
+    // The feature tracker follows the feed-forward scene's lifted features, whatever scene
+    // holds the Gaussians: resolved as a feature request, so the label says so.
+    let features = request.tracker == Tracker::Features;
+    let served = service
+        .sets
+        .resolve_scene(&id, &mut quality, features)
+        .await?;
     let request = TrackRequest {
         tracker: request.tracker,
         queries: request.queries,

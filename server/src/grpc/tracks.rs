@@ -26,27 +26,37 @@ pub(super) async fn tracks(
             .into_status());
         }
     };
+    let mut quality = quality_spec(
+        request.quality,
+        request.keyframes.as_ref(),
+        request.prune.as_ref(),
+        &request.scene,
+    )
+    .map_err(status)?;
+    let service = grpc.service()?;
+    // As REST resolves it (`api/tracks.rs`): the feature tracker reads the feed-forward scene's
+    // lifted features.
+    let served = service
+        .sets
+        .resolve_scene(&request.clip_id, &mut quality, tracker == Tracker::Features)
+        .await
+        .map_err(status)?
+        .name();
     let track_request = TrackRequest {
         tracker,
         queries: request.queries.iter().map(track_query).collect(),
         times: (!request.times.is_empty()).then_some(request.times),
         width: request.width,
         height: request.height,
-        quality: quality_spec(
-            request.quality,
-            request.keyframes.as_ref(),
-            request.prune.as_ref(),
-            "",
-        )
-        .map_err(status)?,
+        quality,
     };
-    let tracks = grpc
-        .service()?
+    let tracks = service
         .views
         .tracks(&request.clip_id, track_request)
         .await
         .map_err(status)?;
     Ok(Response::new(pb::TracksResponse {
+        scene: served.to_owned(),
         tracker: match tracks.tracker {
             Tracker::Gaussians => pb::Tracker::Gaussians,
             Tracker::Features => pb::Tracker::Features,

@@ -446,7 +446,7 @@ class RenderedImage(_message.Message):
     def __init__(self, time: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., data: _Optional[bytes] = ..., channels: _Optional[int] = ..., scene: _Optional[str] = ...) -> None: ...
 
 class TracksRequest(_message.Message):
-    __slots__ = ("clip_id", "queries", "times", "width", "height", "quality", "keyframes", "prune", "tracker")
+    __slots__ = ("clip_id", "queries", "times", "width", "height", "quality", "keyframes", "prune", "tracker", "scene")
     CLIP_ID_FIELD_NUMBER: _ClassVar[int]
     QUERIES_FIELD_NUMBER: _ClassVar[int]
     TIMES_FIELD_NUMBER: _ClassVar[int]
@@ -456,6 +456,7 @@ class TracksRequest(_message.Message):
     KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
     PRUNE_FIELD_NUMBER: _ClassVar[int]
     TRACKER_FIELD_NUMBER: _ClassVar[int]
+    SCENE_FIELD_NUMBER: _ClassVar[int]
     clip_id: str
     queries: _containers.RepeatedCompositeFieldContainer[TrackQuery]
     times: _containers.RepeatedScalarFieldContainer[float]
@@ -465,7 +466,8 @@ class TracksRequest(_message.Message):
     keyframes: Keyframes
     prune: Prune
     tracker: Tracker
-    def __init__(self, clip_id: _Optional[str] = ..., queries: _Optional[_Iterable[_Union[TrackQuery, _Mapping]]] = ..., times: _Optional[_Iterable[float]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., quality: _Optional[_Union[Quality, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ..., tracker: _Optional[_Union[Tracker, str]] = ...) -> None: ...
+    scene: str
+    def __init__(self, clip_id: _Optional[str] = ..., queries: _Optional[_Iterable[_Union[TrackQuery, _Mapping]]] = ..., times: _Optional[_Iterable[float]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., quality: _Optional[_Union[Quality, str]] = ..., keyframes: _Optional[_Union[Keyframes, _Mapping]] = ..., prune: _Optional[_Union[Prune, _Mapping]] = ..., tracker: _Optional[_Union[Tracker, str]] = ..., scene: _Optional[str] = ...) -> None: ...
 
 class TrackQuery(_message.Message):
     __slots__ = ("time", "x", "y")
@@ -478,18 +480,20 @@ class TrackQuery(_message.Message):
     def __init__(self, time: _Optional[float] = ..., x: _Optional[float] = ..., y: _Optional[float] = ...) -> None: ...
 
 class TracksResponse(_message.Message):
-    __slots__ = ("width", "height", "times", "tracks", "tracker")
+    __slots__ = ("width", "height", "times", "tracks", "tracker", "scene")
     WIDTH_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
     TIMES_FIELD_NUMBER: _ClassVar[int]
     TRACKS_FIELD_NUMBER: _ClassVar[int]
     TRACKER_FIELD_NUMBER: _ClassVar[int]
+    SCENE_FIELD_NUMBER: _ClassVar[int]
     width: int
     height: int
     times: _containers.RepeatedScalarFieldContainer[float]
     tracks: _containers.RepeatedCompositeFieldContainer[Track]
     tracker: Tracker
-    def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., times: _Optional[_Iterable[float]] = ..., tracks: _Optional[_Iterable[_Union[Track, _Mapping]]] = ..., tracker: _Optional[_Union[Tracker, str]] = ...) -> None: ...
+    scene: str
+    def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., times: _Optional[_Iterable[float]] = ..., tracks: _Optional[_Iterable[_Union[Track, _Mapping]]] = ..., tracker: _Optional[_Union[Tracker, str]] = ..., scene: _Optional[str] = ...) -> None: ...
 
 class Track(_message.Message):
     __slots__ = ("query", "anchored", "points")
