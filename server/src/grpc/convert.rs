@@ -2,10 +2,14 @@
 //! shares.
 
 use c4g_proto::v1 as pb;
+use tonic::Status;
+
+use crate::error::status;
 
 use c4g_service::ServiceError;
 use c4g_service::clips::intake::cameras::{CameraInput, ClipCameras};
 use c4g_service::clips::record::ClipRecord;
+use c4g_service::service::Service;
 use c4g_service::sets::keyframes::KeyframesSpec;
 use c4g_service::sets::quality::{Preset, PruneSpec, QualitySpec};
 use c4g_service::sets::scene::Scene;
@@ -140,7 +144,27 @@ pub(super) fn track_query(q: &pb::TrackQuery) -> TrackQuery {
     }
 }
 
-pub(super) fn quality_spec(
+/// A request's quality options, with its `scene` resolved for `clip_id` once, before any work
+/// (`SetSource::resolve_scene`, as REST does: `api/scene.rs`): the spec to serve with and the
+/// scene that serves it. `features`: the request reads lifted features (only the feed-forward
+/// scene has them).
+pub(super) async fn resolved_quality(
+    service: &Service,
+    clip_id: &str,
+    (quality, keyframes, prune): (i32, Option<&pb::Keyframes>, Option<&pb::Prune>),
+    scene: &str,
+    features: bool,
+) -> Result<(QualitySpec, Scene), Status> {
+    let mut spec = quality_spec(quality, keyframes, prune, scene).map_err(status)?;
+    let served = service
+        .sets
+        .resolve_scene(clip_id, &mut spec, features)
+        .await
+        .map_err(status)?;
+    Ok((spec, served))
+}
+
+fn quality_spec(
     quality: i32,
     keyframes: Option<&pb::Keyframes>,
     prune: Option<&pb::Prune>,

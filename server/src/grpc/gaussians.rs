@@ -15,19 +15,19 @@ pub(super) async fn decode(
 ) -> Result<Response<pb::DecodeResponse>, Status> {
     let request = request.into_inner();
     let precision: Precision = wire::precision_from_proto(request.precision());
-    let mut quality = quality_spec(
-        request.quality,
-        request.keyframes.as_ref(),
-        request.prune.as_ref(),
-        &request.scene,
-    )
-    .map_err(status)?;
     let service = grpc.service()?;
-    let served = service
-        .sets
-        .resolve_scene(&request.clip_id, &mut quality, request.features)
-        .await
-        .map_err(status)?;
+    let (quality, served) = resolved_quality(
+        service,
+        &request.clip_id,
+        (
+            request.quality,
+            request.keyframes.as_ref(),
+            request.prune.as_ref(),
+        ),
+        &request.scene,
+        request.features,
+    )
+    .await?;
     let frames = if request.features {
         service
             .views

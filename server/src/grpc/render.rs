@@ -28,22 +28,16 @@ pub(super) async fn render(
         height: nonzero(request.height),
         background: background(&request.background).map_err(status)?,
     };
-    let mut quality = quality_spec(
-        request.quality,
-        None,
-        request.prune.as_ref(),
-        &request.scene,
-    )
-    .map_err(status)?;
     let features = FeatureRender::of_format(format);
-    let served = grpc
-        .service()?
-        .sets
-        .resolve_scene(&request.clip_id, &mut quality, features.is_some())
-        .await
-        .map_err(status)?
-        .name()
-        .to_owned();
+    let (quality, served) = resolved_quality(
+        grpc.service()?,
+        &request.clip_id,
+        (request.quality, None, request.prune.as_ref()),
+        &request.scene,
+        features.is_some(),
+    )
+    .await?;
+    let served = served.name().to_owned();
     if let Some(render) = features {
         let features = grpc
             .service()?
@@ -126,19 +120,19 @@ pub(super) async fn render_trajectory(
         height: nonzero(request.height),
         background: background(&request.background).map_err(status)?,
     };
-    let mut quality = quality_spec(
-        request.quality,
-        request.keyframes.as_ref(),
-        request.prune.as_ref(),
+    let (quality, served) = resolved_quality(
+        &service,
+        &request.clip_id,
+        (
+            request.quality,
+            request.keyframes.as_ref(),
+            request.prune.as_ref(),
+        ),
         &request.scene,
+        false,
     )
-    .map_err(status)?;
-    let served = service
-        .sets
-        .resolve_scene(&request.clip_id, &mut quality, false)
-        .await
-        .map_err(status)?
-        .name();
+    .await?;
+    let served = served.name();
     let image_format = request.format;
     let frames = service
         .views

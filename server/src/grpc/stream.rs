@@ -24,19 +24,19 @@ pub(super) async fn stream_gaussians(
         Some(pb::stream_gaussians_request::Spacing::Fps(fps)) => Spacing::Fps(fps),
         None => Spacing::Source,
     };
-    let mut quality = quality_spec(
-        request.quality,
-        request.keyframes.as_ref(),
-        request.prune.as_ref(),
+    let (quality, served) = resolved_quality(
+        &service,
+        &request.clip_id,
+        (
+            request.quality,
+            request.keyframes.as_ref(),
+            request.prune.as_ref(),
+        ),
         &request.scene,
+        false,
     )
-    .map_err(status)?;
-    let served = service
-        .sets
-        .resolve_scene(&request.clip_id, &mut quality, false)
-        .await
-        .map_err(status)?
-        .name();
+    .await?;
+    let served = served.name();
     let stream = StreamRequest {
         start: request.start,
         end: request.end,

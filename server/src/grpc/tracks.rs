@@ -26,22 +26,21 @@ pub(super) async fn tracks(
             .into_status());
         }
     };
-    let mut quality = quality_spec(
-        request.quality,
-        request.keyframes.as_ref(),
-        request.prune.as_ref(),
-        &request.scene,
-    )
-    .map_err(status)?;
     let service = grpc.service()?;
     // As REST resolves it (`api/tracks.rs`): the feature tracker reads the feed-forward scene's
     // lifted features.
-    let served = service
-        .sets
-        .resolve_scene(&request.clip_id, &mut quality, tracker == Tracker::Features)
-        .await
-        .map_err(status)?
-        .name();
+    let (quality, served) = resolved_quality(
+        service,
+        &request.clip_id,
+        (
+            request.quality,
+            request.keyframes.as_ref(),
+            request.prune.as_ref(),
+        ),
+        &request.scene,
+        tracker == Tracker::Features,
+    )
+    .await?;
     let track_request = TrackRequest {
         tracker,
         queries: request.queries.iter().map(track_query).collect(),
@@ -56,7 +55,7 @@ pub(super) async fn tracks(
         .await
         .map_err(status)?;
     Ok(Response::new(pb::TracksResponse {
-        scene: served.to_owned(),
+        scene: served.name().to_owned(),
         tracker: match tracks.tracker {
             Tracker::Gaussians => pb::Tracker::Gaussians,
             Tracker::Features => pb::Tracker::Features,
