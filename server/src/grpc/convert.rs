@@ -151,7 +151,9 @@ pub(super) fn track_query(q: &pb::TrackQuery) -> TrackQuery {
 pub(super) async fn resolved_quality(
     service: &Service,
     clip_id: &str,
-    (quality, keyframes, prune): (i32, Option<&pb::Keyframes>, Option<&pb::Prune>),
+    quality: i32,
+    keyframes: Option<&pb::Keyframes>,
+    prune: Option<&pb::Prune>,
     scene: &str,
     features: bool,
 ) -> Result<(QualitySpec, Scene), Status> {

@@ -19,11 +19,9 @@ pub(super) async fn decode(
     let (quality, served) = resolved_quality(
         service,
         &request.clip_id,
-        (
-            request.quality,
-            request.keyframes.as_ref(),
-            request.prune.as_ref(),
-        ),
+        request.quality,
+        request.keyframes.as_ref(),
+        request.prune.as_ref(),
         &request.scene,
         request.features,
     )

@@ -32,7 +32,9 @@ pub(super) async fn render(
     let (quality, served) = resolved_quality(
         grpc.service()?,
         &request.clip_id,
-        (request.quality, None, request.prune.as_ref()),
+        request.quality,
+        None,
+        request.prune.as_ref(),
         &request.scene,
         features.is_some(),
     )
@@ -123,11 +125,9 @@ pub(super) async fn render_trajectory(
     let (quality, served) = resolved_quality(
         &service,
         &request.clip_id,
-        (
-            request.quality,
-            request.keyframes.as_ref(),
-            request.prune.as_ref(),
-        ),
+        request.quality,
+        request.keyframes.as_ref(),
+        request.prune.as_ref(),
         &request.scene,
         false,
     )

@@ -27,11 +27,9 @@ pub(super) async fn stream_gaussians(
     let (quality, served) = resolved_quality(
         &service,
         &request.clip_id,
-        (
-            request.quality,
-            request.keyframes.as_ref(),
-            request.prune.as_ref(),
-        ),
+        request.quality,
+        request.keyframes.as_ref(),
+        request.prune.as_ref(),
         &request.scene,
         false,
     )

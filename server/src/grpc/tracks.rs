@@ -32,11 +32,9 @@ pub(super) async fn tracks(
     let (quality, served) = resolved_quality(
         service,
         &request.clip_id,
-        (
-            request.quality,
-            request.keyframes.as_ref(),
-            request.prune.as_ref(),
-        ),
+        request.quality,
+        request.keyframes.as_ref(),
+        request.prune.as_ref(),
         &request.scene,
         tracker == Tracker::Features,
     )
