@@ -2,15 +2,26 @@
 interpolated frames and novel views, fitted against feed-forward, through the service itself.
 
     python -m c4g.eval.fit_synthetic [--bin target/release] [--preset fast] [--steps N]
+                                     [--cameras given|recovered|none]
 
 Starts `c4g-server` (the default model) and one `c4g-fitter` on a temporary store, and for each
-clip in `models/c4g-tiny/test-clips/`: uploads its 7 frames with their times, fits with
+clip in `models/c4g-tiny/test-clips/`: uploads its 7 frames with their times and, by default,
+their cameras (the clip's own, in the model's frame: a user who has cameras gives them; the fit
+trains at its frames' input cameras, and these clips' cameras turn), fits with
 `holdout_every` 2 (so the fit trains on the context frames 0, 2, 4, 6 and never sees the
 interpolated targets 1, 3, 5: the same split the model's own evaluation uses), then renders both
 scenes (`"scene": "feed-forward"` and `"fitted"`) at every target time, at the input camera (the
 interpolated frames) and at the clip's novel cameras, and scores them against the ground truth
 frames (PSNR on 8-bit RGB, the service's PNGs against the clip's). A fit that wrecks geometry
 shows as novel views below the feed-forward answer's.
+
+`--cameras none` uploads without cameras, as a user who has none does: the fit then assumes the
+still camera the service assumes for such a clip (the identity at every time), so on a clip whose
+camera turns it explains the turn as the scene's motion, and its renders at the true cameras
+(which the scores use) are wrong by that turn. It measures what an unknown moving camera costs.
+`--cameras recovered` uploads without cameras, then recovers them (`POST
+/v1/clips/{id}/cameras/recover`) before the fit, which then trains at the recovered cameras: what
+a user without cameras can do about it, as good as the model's geometry.
 """
 
 from __future__ import annotations
@@ -68,15 +79,22 @@ def render(url: str, clip: str, t: float, camera: dict, scene: str, size: int) -
     return np.asarray(Image.open(io.BytesIO(r.content)).convert("RGB"))
 
 
-def measure(url: str, folder: Path, fit: dict) -> dict:
+def measure(url: str, folder: Path, fit: dict, cameras: str) -> dict:
     meta = json.loads((folder / "clip.json").read_text())
     frames = [folder / f for f in meta["frames"]]
     files = [("frame", (f.name, f.read_bytes(), "image/png")) for f in frames]
     data = {"timestamps": ",".join(str(t) for t in meta["times"]), "stride": "2"}
+    k = meta["intrinsics_normalised"]
+    intrinsics = {"fx": k[0], "fy": k[1], "cx": k[2], "cy": k[3]}
+    if cameras == "given":
+        given = [{"world_to_camera": rows(m), "intrinsics": intrinsics} for m in meta["world_to_camera_model"]]
+        data["cameras"] = json.dumps(given)
     r = requests.post(f"{url}/v1/clips", files=files, data=data, timeout=300)
     r.raise_for_status()
     clip = r.json()["id"]
     started = time.time()
+    if cameras == "recovered":
+        requests.post(f"{url}/v1/clips/{clip}/cameras/recover", json={}, timeout=300).raise_for_status()
     job = requests.post(f"{url}/v1/clips/{clip}/fit", json=fit, timeout=60).json()
     while True:
         record = requests.get(f"{url}/v1/jobs/{job['id']}", timeout=30).json()
@@ -87,8 +105,6 @@ def measure(url: str, folder: Path, fit: dict) -> dict:
         raise RuntimeError(f"{folder.name}: the fit ended {record['state']}: {record.get('error')}")
     fitted = requests.get(f"{url}/v1/clips/{clip}", timeout=30).json()["fitted"]
     size = np.asarray(Image.open(frames[0])).shape[0]
-    k = meta["intrinsics_normalised"]
-    intrinsics = {"fx": k[0], "fy": k[1], "cx": k[2], "cy": k[3]}
     scores: dict[str, dict[str, list[float]]] = {}
     for scene in ("feed-forward", "fitted"):
         held, novel = [], []
@@ -116,6 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--bin", type=lambda p: Path(p).resolve(), default=REPO / "target/release", help="where c4g-server and c4g-fitter are")
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--steps", type=int, default=None)
+    ap.add_argument("--cameras", choices=("given", "recovered", "none"), default="given", help="upload the clips' cameras; or none, recovered before the fit; or none at all (the still camera is assumed)")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="another field of the fit request (JSON value), e.g. max_gaussians=2000")
     args = ap.parse_args(argv)
     fit = {"preset": args.preset, "holdout_every": 2, "resolution": 64}
@@ -135,13 +152,13 @@ def main(argv: list[str] | None = None) -> int:
         try:
             wait_ready(url)
             fitter = subprocess.Popen([str(args.bin / "c4g-fitter"), "--server", url, "--name", "eval"], cwd=REPO)
-            results = [measure(url, folder, fit) for folder in sorted(CLIPS.iterdir()) if (folder / "clip.json").exists()]
+            results = [measure(url, folder, fit, args.cameras) for folder in sorted(CLIPS.iterdir()) if (folder / "clip.json").exists()]
         finally:
             for p in (fitter, server):
                 if p is not None:
                     p.terminate()
                     p.wait(timeout=60)
-    print(f"# fit {json.dumps(fit)}; PSNR dB against ground truth (64 x 64); machine: {os.cpu_count()} cores")
+    print(f"# fit {json.dumps(fit)}, cameras {args.cameras}; PSNR dB against ground truth (64 x 64); machine: {os.cpu_count()} cores")
     for r in results:
         print(json.dumps(r))
     mean = lambda key: np.mean([r[key] for r in results])  # noqa: E731
