@@ -13,7 +13,7 @@ use crate::AppState;
 use crate::error::{IntoStatus, status};
 use c4g_service::jobs::fit::{self, FitOutcome, FitWork};
 use c4g_service::jobs::refine::{WorkerJob, WorkerModel, build_job};
-use c4g_service::jobs::{JobState, Progress};
+use c4g_service::jobs::{JobQueue, JobRecord, JobState, Progress};
 use c4g_service::service::Service;
 use c4g_service::{ServiceError, ServiceErrorKind};
 
@@ -36,6 +36,64 @@ pub struct Workers {
 impl Workers {
     fn service(&self) -> Result<&Arc<Service>, Status> {
         self.state.service().map_err(status)
+    }
+
+    /// The next job of `queue` that `worker` can be given, waiting up to `wait` for one, as
+    /// `build` makes it (`taken`: what the log says when it is handed out). `None` when none
+    /// came, when the server drains (a drain also ends the wait), or when building it found the
+    /// work queue full: the job then goes back as it was and the worker asks again later (an
+    /// attempt spent there could fail a job for being busy). A job that cannot be built for any
+    /// other reason fails (retryably when the failure is internal: nothing a worker can do about
+    /// it) and the next one is taken.
+    async fn take_next<W, Fut>(
+        &self,
+        queue: &Arc<dyn JobQueue>,
+        worker: &str,
+        wait: Duration,
+        taken: &str,
+        build: impl Fn(JobRecord) -> Fut,
+    ) -> Result<Option<W>, Status>
+    where
+        Fut: Future<Output = Result<W, ServiceError>>,
+    {
+        loop {
+            if self.state.is_draining() {
+                return Ok(None);
+            }
+            let record = tokio::select! {
+                record = queue.take(worker, wait) => record.map_err(status)?,
+                () = self.state.drained() => None,
+            };
+            let Some(record) = record else {
+                return Ok(None);
+            };
+            let (id, attempt) = (record.id.clone(), record.attempt);
+            match build(record).await {
+                Ok(work) => {
+                    tracing::info!(job = %id, worker, attempt, "{taken}");
+                    return Ok(Some(work));
+                }
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        ServiceErrorKind::Overloaded | ServiceErrorKind::Busy
+                    ) =>
+                {
+                    queue
+                        .release(&id, worker, &e.to_string())
+                        .await
+                        .map_err(status)?;
+                    return Ok(None);
+                }
+                Err(e) => {
+                    let retryable = e.kind() == ServiceErrorKind::Internal;
+                    queue
+                        .fail(&id, worker, &e.to_string(), retryable, false)
+                        .await
+                        .map_err(status)?;
+                }
+            }
+        }
     }
 }
 
@@ -62,64 +120,19 @@ impl Jobs for Workers {
             .image_size(Some(request.width), Some(request.height))
             .map_err(status)?;
         let wait = Duration::from_millis(u64::from(request.wait_ms)).min(MAX_WAIT);
-        loop {
-            // A draining server hands out no job, and stops a worker's wait when the drain starts.
-            if self.state.is_draining() {
-                return Ok(Response::new(pb::TakeResponse { job: None }));
-            }
-            let taken = tokio::select! {
-                taken = service.jobs.take(&request.worker, wait) => taken.map_err(status)?,
-                () = self.state.drained() => None,
-            };
-            let Some(record) = taken else {
-                return Ok(Response::new(pb::TakeResponse { job: None }));
-            };
-            let model = WorkerModel {
-                frames: request.frames as usize,
-                keyframes: request.keyframes as usize,
-                width: w,
-                height: h,
-            };
-            match build_job(&service.views, &record, model).await {
-                Ok(job) => {
-                    tracing::info!(job = %record.id, worker = %request.worker, attempt = record.attempt, "job taken");
-                    return Ok(Response::new(pb::TakeResponse {
-                        job: Some(refine_job(job)),
-                    }));
-                }
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        ServiceErrorKind::Overloaded | ServiceErrorKind::Busy
-                    ) =>
-                {
-                    // A full work queue passes: the job goes back as it was, and the worker asks
-                    // again later (an attempt spent here could fail a job for being busy).
-                    service
-                        .jobs
-                        .release(&record.id, &request.worker, &e.to_string())
-                        .await
-                        .map_err(status)?;
-                    return Ok(Response::new(pb::TakeResponse { job: None }));
-                }
-                Err(e) => {
-                    // Nothing a worker can do about a job it cannot be given: it fails, and the
-                    // worker gets the next one.
-                    let retryable = e.kind() == ServiceErrorKind::Internal;
-                    service
-                        .jobs
-                        .fail(
-                            &record.id,
-                            &request.worker,
-                            &e.to_string(),
-                            retryable,
-                            false,
-                        )
-                        .await
-                        .map_err(status)?;
-                }
-            }
-        }
+        let model = WorkerModel {
+            frames: request.frames as usize,
+            keyframes: request.keyframes as usize,
+            width: w,
+            height: h,
+        };
+        let job = self
+            .take_next(&service.jobs, &request.worker, wait, "job taken", |record| {
+                let views = service.views.clone();
+                async move { build_job(&views, &record, model).await.map(refine_job) }
+            })
+            .await?;
+        Ok(Response::new(pb::TakeResponse { job }))
     }
 
     async fn progress(
@@ -207,53 +220,13 @@ impl Jobs for Workers {
             return Err(ServiceError::invalid("a worker names itself").into_status());
         }
         let wait = Duration::from_millis(u64::from(request.wait_ms)).min(MAX_WAIT);
-        loop {
-            if self.state.is_draining() {
-                return Ok(Response::new(pb::TakeFitResponse { job: None }));
-            }
-            let taken = tokio::select! {
-                taken = service.fits.take(&request.worker, wait) => taken.map_err(status)?,
-                () = self.state.drained() => None,
-            };
-            let Some(record) = taken else {
-                return Ok(Response::new(pb::TakeFitResponse { job: None }));
-            };
-            match fit::build_work(&service.views, &record).await {
-                Ok(work) => {
-                    tracing::info!(job = %record.id, worker = %request.worker, attempt = record.attempt, "fit taken");
-                    return Ok(Response::new(pb::TakeFitResponse {
-                        job: Some(fit_job(work)),
-                    }));
-                }
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        ServiceErrorKind::Overloaded | ServiceErrorKind::Busy
-                    ) =>
-                {
-                    service
-                        .fits
-                        .release(&record.id, &request.worker, &e.to_string())
-                        .await
-                        .map_err(status)?;
-                    return Ok(Response::new(pb::TakeFitResponse { job: None }));
-                }
-                Err(e) => {
-                    let retryable = e.kind() == ServiceErrorKind::Internal;
-                    service
-                        .fits
-                        .fail(
-                            &record.id,
-                            &request.worker,
-                            &e.to_string(),
-                            retryable,
-                            false,
-                        )
-                        .await
-                        .map_err(status)?;
-                }
-            }
-        }
+        let job = self
+            .take_next(&service.fits, &request.worker, wait, "fit taken", |record| {
+                let views = service.views.clone();
+                async move { fit::build_work(&views, &record).await.map(fit_job) }
+            })
+            .await?;
+        Ok(Response::new(pb::TakeFitResponse { job }))
     }
 
     async fn finish_fit(
