@@ -127,10 +127,16 @@ impl Jobs for Workers {
             height: h,
         };
         let job = self
-            .take_next(&service.jobs, &request.worker, wait, "job taken", |record| {
-                let views = service.views.clone();
-                async move { build_job(&views, &record, model).await.map(refine_job) }
-            })
+            .take_next(
+                &service.jobs,
+                &request.worker,
+                wait,
+                "job taken",
+                |record| {
+                    let views = service.views.clone();
+                    async move { build_job(&views, &record, model).await.map(refine_job) }
+                },
+            )
             .await?;
         Ok(Response::new(pb::TakeResponse { job }))
     }
@@ -221,10 +227,16 @@ impl Jobs for Workers {
         }
         let wait = Duration::from_millis(u64::from(request.wait_ms)).min(MAX_WAIT);
         let job = self
-            .take_next(&service.fits, &request.worker, wait, "fit taken", |record| {
-                let views = service.views.clone();
-                async move { fit::build_work(&views, &record).await.map(fit_job) }
-            })
+            .take_next(
+                &service.fits,
+                &request.worker,
+                wait,
+                "fit taken",
+                |record| {
+                    let views = service.views.clone();
+                    async move { fit::build_work(&views, &record).await.map(fit_job) }
+                },
+            )
             .await?;
         Ok(Response::new(pb::TakeFitResponse { job }))
     }
