@@ -15,12 +15,8 @@ use std::time::{Duration, Instant};
 
 use c4g_fit::Control;
 use c4g_proto::v1 as pb;
-use c4g_proto::v1::jobs_client::JobsClient;
+use c4g_proto::worker::{Client, WorkerConfig, connect, stopping};
 use tokio::sync::watch;
-use tonic::metadata::{Ascii, MetadataValue};
-use tonic::service::Interceptor;
-use tonic::service::interceptor::InterceptedService;
-use tonic::transport::Channel;
 
 use crate::work::{self, WorkError};
 
@@ -33,53 +29,9 @@ pub const REPORT_EVERY: Duration = Duration::from_millis(500);
 /// Bytes of the scene per `FinishFit` message.
 const PIECE: usize = 1 << 20;
 
-/// Adds the API key to every call.
-#[derive(Clone)]
-struct Auth(Option<MetadataValue<Ascii>>);
-
-impl Interceptor for Auth {
-    fn call(
-        &mut self,
-        mut request: tonic::Request<()>,
-    ) -> Result<tonic::Request<()>, tonic::Status> {
-        if let Some(value) = &self.0 {
-            request
-                .metadata_mut()
-                .insert("authorization", value.clone());
-        }
-        Ok(request)
-    }
-}
-
-type Client = JobsClient<InterceptedService<Channel, Auth>>;
-
-/// A worker's settings.
-#[derive(Debug, Clone)]
-pub struct WorkerConfig {
-    /// The server, e.g. `http://127.0.0.1:8080`.
-    pub server: String,
-    /// The API key, if the server wants one.
-    pub api_key: Option<String>,
-    /// How this worker names itself in job records.
-    pub name: String,
-}
-
 /// Runs fit jobs until `shutdown` turns true.
 pub async fn run(config: WorkerConfig, mut shutdown: watch::Receiver<bool>) -> Result<(), String> {
-    let auth = match &config.api_key {
-        Some(key) => Some(
-            format!("Bearer {key}")
-                .parse()
-                .map_err(|_| "the API key must be printable ASCII".to_owned())?,
-        ),
-        None => None,
-    };
-    let channel = tonic::transport::Endpoint::from_shared(config.server.clone())
-        .map_err(|e| format!("bad server address {}: {e}", config.server))?
-        .connect_lazy();
-    let mut client = JobsClient::with_interceptor(channel, Auth(auth))
-        .max_decoding_message_size(usize::MAX)
-        .max_encoding_message_size(usize::MAX);
+    let mut client = connect(&config)?;
     tracing::info!(server = %config.server, worker = %config.name, "fit worker started");
     loop {
         if *shutdown.borrow() {
@@ -116,13 +68,6 @@ pub async fn run(config: WorkerConfig, mut shutdown: watch::Receiver<bool>) -> R
     }
     tracing::info!(worker = %config.name, "fit worker stopped");
     Ok(())
-}
-
-/// Resolves once `shutdown` is true; never when its sender is gone.
-async fn stopping(shutdown: &mut watch::Receiver<bool>) {
-    if shutdown.wait_for(|stop| *stop).await.is_err() {
-        std::future::pending::<()>().await;
-    }
 }
 
 /// How a fit ended.

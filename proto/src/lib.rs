@@ -1,12 +1,15 @@
 //! The c4g gRPC contract: the messages and services of `proto/c4g/v1/c4g.proto`, generated at
-//! build time, the descriptor set that gRPC reflection serves, and the [`codec`] both ends use.
-
-#![allow(missing_docs, clippy::all)]
+//! build time, the descriptor set that gRPC reflection serves, the [`codec`] both ends use, and
+//! the [`worker`]s' end of `c4g.v1.Jobs`.
 
 /// Prost's codec, with messages that do not decode as `INVALID_ARGUMENT`.
 pub mod codec;
 
-/// Package `c4g.v1`.
+/// The worker's end of `c4g.v1.Jobs`: its settings, its client, its stop signal.
+pub mod worker;
+
+/// Package `c4g.v1` (generated: its items are documented in the proto files).
+#[allow(missing_docs, clippy::all)]
 pub mod v1 {
     tonic::include_proto!("c4g.v1");
 }

@@ -18,14 +18,10 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use c4g_proto::v1 as pb;
-use c4g_proto::v1::jobs_client::JobsClient;
+use c4g_proto::worker::{Client, WorkerConfig, connect, stopping};
 use image::RgbImage;
 use image::imageops::FilterType;
 use tokio::sync::watch;
-use tonic::metadata::MetadataValue;
-use tonic::service::Interceptor;
-use tonic::service::interceptor::InterceptedService;
-use tonic::transport::Channel;
 
 use crate::layout::{self, Keyframe};
 use crate::{ErrorKind, Layout, Mask, Pipeline, RefineRequest, RefinerError, Sampler};
@@ -34,37 +30,6 @@ use crate::{ErrorKind, Layout, Mask, Pipeline, RefineRequest, RefinerError, Samp
 const TAKE_WAIT: Duration = Duration::from_secs(20);
 /// Pause after a failed call to the server before trying again.
 const RECONNECT_PAUSE: Duration = Duration::from_secs(1);
-
-/// Adds the API key to every call.
-#[derive(Clone)]
-pub struct Auth(Option<MetadataValue<tonic::metadata::Ascii>>);
-
-impl Interceptor for Auth {
-    fn call(
-        &mut self,
-        mut request: tonic::Request<()>,
-    ) -> Result<tonic::Request<()>, tonic::Status> {
-        if let Some(value) = &self.0 {
-            request
-                .metadata_mut()
-                .insert("authorization", value.clone());
-        }
-        Ok(request)
-    }
-}
-
-type Client = JobsClient<InterceptedService<Channel, Auth>>;
-
-/// A worker's settings.
-#[derive(Debug, Clone)]
-pub struct WorkerConfig {
-    /// The server, e.g. `http://127.0.0.1:8080`.
-    pub server: String,
-    /// The API key, if the server wants one.
-    pub api_key: Option<String>,
-    /// How this worker names itself in job records.
-    pub name: String,
-}
 
 /// Why a worker hands a job back in `Release`.
 const STOPPING: &str = "the worker is stopping";
@@ -76,20 +41,7 @@ pub async fn run(
     pipeline: Arc<Pipeline>,
     mut shutdown: watch::Receiver<bool>,
 ) -> Result<(), String> {
-    let auth = match &config.api_key {
-        Some(key) => Some(
-            format!("Bearer {key}")
-                .parse()
-                .map_err(|_| "the API key must be printable ASCII".to_owned())?,
-        ),
-        None => None,
-    };
-    let channel = tonic::transport::Endpoint::from_shared(config.server.clone())
-        .map_err(|e| format!("bad server address {}: {e}", config.server))?
-        .connect_lazy();
-    let mut client = JobsClient::with_interceptor(channel, Auth(auth))
-        .max_decoding_message_size(usize::MAX)
-        .max_encoding_message_size(usize::MAX);
+    let mut client = connect(&config)?;
     let m = pipeline.package().manifest();
     tracing::info!(server = %config.server, worker = %config.name, model = %m.name, "worker started");
     loop {
@@ -130,13 +82,6 @@ pub async fn run(
     }
     tracing::info!(worker = %config.name, "worker stopped: it takes no more jobs");
     Ok(())
-}
-
-/// Resolves once `shutdown` is true; never when its sender is gone.
-async fn stopping(shutdown: &mut watch::Receiver<bool>) {
-    if shutdown.wait_for(|stop| *stop).await.is_err() {
-        std::future::pending::<()>().await;
-    }
 }
 
 async fn run_job(

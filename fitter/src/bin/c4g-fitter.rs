@@ -4,7 +4,8 @@
 use std::io::IsTerminal;
 use std::process::ExitCode;
 
-use c4g_fitter::worker::{WorkerConfig, run};
+use c4g_fitter::worker::run;
+use c4g_proto::worker::WorkerConfig;
 use clap::Parser;
 use tokio::signal::unix::{SignalKind, signal};
 use tokio::sync::watch;

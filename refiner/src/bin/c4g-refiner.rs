@@ -9,7 +9,8 @@ use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::Duration;
 
-use c4g_refiner::worker::{WorkerConfig, run};
+use c4g_proto::worker::WorkerConfig;
+use c4g_refiner::worker::run;
 use c4g_refiner::{LoraSpec, Pipeline, PipelineOptions, SessionOptions};
 use clap::Parser;
 use tokio::signal::unix::{SignalKind, signal};
