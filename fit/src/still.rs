@@ -24,15 +24,15 @@ pub(crate) struct StillPixels {
 
 impl StillPixels {
     /// The still pixels of `frames` (each its camera and its RGB, 3 floats a pixel), or `None`
-    /// when they are not all from one camera (or fewer than two, or `threshold` is not
-    /// positive).
+    /// when they are not all from one camera ([`same_view`]; or fewer than two, or `threshold` is
+    /// not positive).
     pub(crate) fn measure(frames: &[(Camera, &[f32])], threshold: f64) -> Option<Self> {
         let &(camera, first) = frames.first()?;
         if frames.len() < 2
             || threshold <= 0.0
             || frames
                 .iter()
-                .any(|(c, rgb)| *c != camera || rgb.len() != first.len())
+                .any(|(c, rgb)| !same_view(c, &camera) || rgb.len() != first.len())
         {
             return None;
         }
@@ -82,6 +82,29 @@ impl StillPixels {
     fn fraction(&self) -> f64 {
         self.still.iter().filter(|s| **s).count() as f64 / self.still.len().max(1) as f64
     }
+}
+
+/// Largest difference between two poses' world-to-camera entries for one still camera: given
+/// cameras of a tripod shot differ by rounding (the synthetic clips' by 1e-17 before they are
+/// made relative to the first and stored in `f32`), and a turn of 1e-5 rad or a step of 1e-5
+/// scene units moves a pixel by a hundredth at a focal of 1000 px and depth 1.
+const SAME_POSE: f32 = 1e-5;
+/// … and between their intrinsics, in pixels.
+const SAME_INTRINSICS_PX: f32 = 1e-3;
+
+/// Whether `a` and `b` see the same image: the same size, and pose and intrinsics equal within
+/// [`SAME_POSE`] and [`SAME_INTRINSICS_PX`].
+fn same_view(a: &Camera, b: &Camera) -> bool {
+    let (ka, kb) = (a.intrinsics(), b.intrinsics());
+    let close = |x: f32, y: f32| (x - y).abs() <= SAME_INTRINSICS_PX;
+    ka.width == kb.width
+        && ka.height == kb.height
+        && close(ka.fx, kb.fx)
+        && close(ka.fy, kb.fy)
+        && close(ka.cx, kb.cx)
+        && close(ka.cy, kb.cy)
+        && a.world_to_camera_matrix()
+            .abs_diff_eq(b.world_to_camera_matrix(), SAME_POSE)
 }
 
 #[cfg(test)]
@@ -137,5 +160,17 @@ mod tests {
         )
         .unwrap();
         assert!(StillPixels::measure(&moved, 0.02).is_none());
+        // Rounding is not a move: a pose off by 1e-7 (as given cameras made relative to the
+        // first come out) is the same camera; one turned by a thousandth of a radian is not.
+        let pose = |angle: f32, noise: f32| {
+            let mut m = glam::Mat4::from_rotation_y(angle);
+            m.x_axis.z += noise;
+            Camera::from_world_to_camera_matrix(*camera().intrinsics(), m).unwrap()
+        };
+        let mut rounded = frames.clone();
+        rounded[2].0 = pose(0.0, 1e-7);
+        assert!(StillPixels::measure(&rounded, 0.02).is_some());
+        rounded[2].0 = pose(1e-3, 0.0);
+        assert!(StillPixels::measure(&rounded, 0.02).is_none());
     }
 }
