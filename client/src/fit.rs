@@ -128,6 +128,10 @@ pub struct FittedSummary {
     /// Unix seconds.
     #[serde(default)]
     pub created_at: u64,
+    /// What a person should know about the fit beyond its numbers (a camera that probably
+    /// moved); usually empty.
+    #[serde(default)]
+    pub notes: Vec<String>,
     /// Everything else the server reported.
     #[serde(flatten)]
     pub extra: Map<String, Value>,
@@ -192,11 +196,12 @@ mod tests {
             "keyframes": [0.0, 0.3, 0.6], "steps": 8, "seconds": 1.25, "frames": 8,
             "resolution": [32, 32], "holdout_frames": [3, 7], "holdout_times": [0.3, 0.7],
             "holdout_psnr": 21.5, "holdout_psnr_feed_forward": 15.0, "train_psnr": 22.0,
-            "stopped_early": false, "created_at": 1, "new_field": "kept"
+            "stopped_early": false, "created_at": 1, "notes": ["a note"], "new_field": "kept"
         });
         let summary: FittedSummary = serde_json::from_value(record.clone()).unwrap();
         assert_eq!((summary.gaussians, summary.static_gaussians), (900, 600));
         assert_eq!(summary.holdout_gain(), Some(6.5));
+        assert_eq!(summary.notes, ["a note"]);
         assert_eq!(serde_json::to_value(&summary).unwrap(), record);
         let unscored: FittedSummary = serde_json::from_value(
             json!({"holdout_psnr": null, "holdout_psnr_feed_forward": null}),

@@ -78,8 +78,7 @@ impl StillPixels {
     }
 
     /// The share of pixels that are still.
-    #[cfg(test)]
-    fn fraction(&self) -> f64 {
+    pub(crate) fn fraction(&self) -> f64 {
         self.still.iter().filter(|s| **s).count() as f64 / self.still.len().max(1) as f64
     }
 }

@@ -166,6 +166,9 @@ fn fitting_raises_the_psnr_of_frames_it_never_saw() {
     );
     // Measured 21.0 -> 39.5 dB; 10 dB is a clear margin that tolerates a change of rates.
     assert!(after > before + 10.0, "{before} -> {after}");
+    // One camera, Gaussians moving in front of it: some pixels change, not all.
+    let share = report.still_share.unwrap();
+    assert!(share > 0.0 && share < 1.0, "{share}");
     assert_eq!((report.steps, fitted.len()), (120, GAUSSIANS));
 }
 
@@ -202,6 +205,8 @@ fn a_one_frame_clip_fits_with_no_holdout() {
     assert!(report.train_psnr_after.is_finite());
     assert_eq!(report.static_count, GAUSSIANS);
     assert_eq!(fitted.sets.len(), 1);
+    // One frame says nothing about what stays still.
+    assert_eq!(report.still_share, None);
 }
 
 #[test]
@@ -217,6 +222,8 @@ fn an_all_black_clip_ends_finite() {
     assert!(finite(&fitted));
     assert!(report.curve.iter().all(|p| p.loss.is_finite()));
     assert!(report.holdout_psnr_after.unwrap() > report.holdout_psnr_before.unwrap());
+    // One camera, and nothing in its frames changes: every pixel is still.
+    assert_eq!(report.still_share, Some(1.0));
 }
 
 #[test]

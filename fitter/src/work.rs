@@ -174,6 +174,7 @@ pub struct Outcome {
     train_psnr: f64,
     stopped: bool,
     resolution: [u32; 2],
+    still_share: Option<f64>,
 }
 
 /// Fits `prepared`; `progress` sees every step and may stop it. The fitted scene's bytes and the
@@ -198,6 +199,7 @@ pub fn run(
         train_psnr: report.train_psnr_after,
         stopped: report.stopped,
         resolution: [prepared.size.0, prepared.size.1],
+        still_share: report.still_share,
     };
     Ok((c4g_fit::file::to_bytes(&scene), outcome))
 }

@@ -510,9 +510,9 @@ function duration(seconds) {
 }
 
 /**
- * What the clip's fitted scene is and how it scores ('' when it has none). The held-out frames'
- * PSNR is the reconstruction's quality on frames the fit never trained on, beside the
- * feed-forward scene's on the same frames.
+ * What the clip's fitted scene is and how it scores ('' when it has none), then the fit's notes
+ * (a camera that probably moved). The held-out frames' PSNR is the reconstruction's quality on
+ * frames the fit never trained on, beside the feed-forward scene's on the same frames.
  */
 function fittedSummary(fitted) {
   if (!fitted) return '';
@@ -532,7 +532,8 @@ function fittedSummary(fitted) {
   return (
     `Fitted scene (${fitted.preset}): ${fitted.steps} steps on ${fitted.frames} source frames in ` +
     `${duration(fitted.seconds)}; ${fitted.gaussians.toLocaleString('en')} Gaussians ` +
-    `(${fitted.static_gaussians.toLocaleString('en')} static) at ${fitted.keyframes.length} keyframes; ${score}.`
+    `(${fitted.static_gaussians.toLocaleString('en')} static) at ${fitted.keyframes.length} keyframes; ${score}.` +
+    (fitted.notes || []).map((note) => ` Note: ${note}.`).join('')
   );
 }
 

@@ -118,7 +118,7 @@ pub async fn run(cx: &Context, args: Args) -> anyhow::Result<()> {
 }
 
 /// The clip's id on the first line (scripts take it with `head -1`), then what the fit made:
-/// held-out PSNR beside the feed-forward answer's, the Gaussians, the work.
+/// held-out PSNR beside the feed-forward answer's, the Gaussians, the work, and the fit's notes.
 pub(super) fn fitted_summary(clip: &Clip, fitted: &FittedSummary) -> String {
     let mut text = format!("{}\n", clip.id);
     let _ = writeln!(text, "  held-out  {}", held_out_text(fitted));
@@ -145,6 +145,9 @@ pub(super) fn fitted_summary(clip: &Clip, fitted: &FittedSummary) -> String {
     let _ = writeln!(text, "  fit       {work}");
     if !fitted.job_id.is_empty() {
         let _ = writeln!(text, "  job       {}", fitted.job_id);
+    }
+    for note in &fitted.notes {
+        let _ = writeln!(text, "  note      {note}");
     }
     text
 }
@@ -200,6 +203,11 @@ mod tests {
              scene     900 Gaussians (600 static) at 2 keyframes\n  \
              fit       8 steps in 1.500 s, 8 frames at 32x24, preset fast, stopped early (time budget)\n  \
              job       job-1\n"
+        );
+        let noted = summary(json!({"notes": ["only 2 % of the frame stayed still"]}));
+        assert!(
+            fitted_summary(&clip, &noted)
+                .ends_with("  note      only 2 % of the frame stayed still\n")
         );
     }
 }

@@ -70,6 +70,7 @@ def test_the_clip_lists_its_fitted_scene(fitted):
     assert 0 < summary.gaussians <= 1_000_000 and 0 <= summary.static_gaussians <= summary.gaussians
     assert max(summary.resolution) <= TINY["resolution"] and summary.keyframes
     assert summary.raw == clip.raw["fitted"]
+    assert summary.notes == tuple(clip.raw["fitted"]["notes"])
 
 
 def test_requests_serve_the_fitted_scene_by_default_and_the_model_s_on_request(client: Client, fitted):

@@ -67,6 +67,10 @@ pub struct FittedSummary {
     pub stopped_early: bool,
     /// Unix seconds.
     pub created_at: u64,
+    /// What a person should know about this fit beyond its numbers (a camera that probably
+    /// moved); empty for most. Absent from scenes stored before it.
+    #[serde(default)]
+    pub notes: Vec<String>,
 }
 
 /// A fitted scene ready to serve: its summary, keyframes and the engine's track through them.
@@ -309,6 +313,7 @@ mod tests {
             train_psnr: 31.0,
             stopped_early: false,
             created_at: 1,
+            notes: vec!["a note".into()],
         }
     }
 
@@ -324,6 +329,14 @@ mod tests {
             .unwrap()
         };
         FittedScene::new(vec![(0.0, set(0.0)), (1.0, set(0.5))]).unwrap()
+    }
+
+    #[test]
+    fn a_summary_stored_before_notes_reads_with_none() {
+        let mut old = serde_json::to_value(summary()).unwrap();
+        old.as_object_mut().unwrap().remove("notes");
+        let read: FittedSummary = serde_json::from_value(old).unwrap();
+        assert_eq!(read.notes, Vec::<String>::new());
     }
 
     #[test]

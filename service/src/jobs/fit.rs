@@ -135,6 +135,10 @@ pub struct FitOutcome {
     pub stopped: bool,
     /// Working resolution (width, height).
     pub resolution: [u32; 2],
+    /// The share of the frame that stayed still, when every training frame had one camera
+    /// (`c4g_fit::FitReport::still_share`; absent from workers older than it).
+    #[serde(default)]
+    pub still_share: Option<f64>,
 }
 
 /// Queues a fit of clip `record` as `request` asks (checked).
@@ -286,11 +290,33 @@ pub async fn complete(
         train_psnr: outcome.train_psnr,
         stopped_early: outcome.stopped,
         created_at: now(),
+        notes: notes(outcome.still_share, views.input_cameras(&record).is_some()),
     };
     let fitted = Fitted::new(summary, scene)?;
     views.sets.fitted.put(&record.id, fitted).await?;
     fits.finish(job_id, worker, Vec::new(), outcome.seconds)
         .await
+}
+
+/// A fitted clip whose frames stayed still over less than this share of the frame is noted as
+/// probably filmed by a moving camera (measured: bedroom's handheld pan 2 %, dog's tripod 60 %;
+/// a tripod on a scene that moves everywhere can fall under it too, so the note says "if").
+const STILL_SHARE_OF_A_STILL_CAMERA: f64 = 0.10;
+
+/// What the fitted scene's record says beside its numbers: for a clip without cameras (fitted at
+/// the still camera) whose frames hardly stay still anywhere (`still_share`), that a moving
+/// camera would have been taken for the scene's motion, and what to do about it.
+fn notes(still_share: Option<f64>, has_cameras: bool) -> Vec<String> {
+    match still_share {
+        Some(share) if !has_cameras && share < STILL_SHARE_OF_A_STILL_CAMERA => vec![format!(
+            "only {:.0} % of the frame stayed still over the clip, which has no cameras and was \
+             fitted as if filmed from a still camera: if the camera moved, the fit took its \
+             motion for the scene's, and renders away from the input camera will not hold; \
+             upload the clip with its cameras (docs/api.md, \"Given cameras\") and fit again",
+            100.0 * share
+        )],
+        _ => Vec::new(),
+    }
 }
 
 /// The times of the frames a fit of `record` under `settings` supervises with, in order (its kept
@@ -326,6 +352,39 @@ fn spread(n: usize, k: usize) -> Vec<usize> {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
+    #[test]
+    fn a_camera_less_clip_that_hardly_stays_still_is_noted_as_probably_moving() {
+        // Bedroom's handheld pan kept 2 % still; dog's tripod 60 %.
+        let note = notes(Some(0.02), false);
+        assert_eq!(note.len(), 1);
+        assert!(
+            note[0].starts_with("only 2 % of the frame stayed still"),
+            "{}",
+            note[0]
+        );
+        assert!(
+            note[0].contains("Given cameras"),
+            "says what to do: {}",
+            note[0]
+        );
+        assert!(notes(Some(0.60), false).is_empty(), "a tripod shot");
+        assert!(
+            notes(Some(0.02), true).is_empty(),
+            "its cameras were given or recovered"
+        );
+        assert!(
+            notes(None, false).is_empty(),
+            "frames from more than one camera"
+        );
+        // A worker older than the field sends no share: its outcome still reads.
+        let outcome: FitOutcome = serde_json::from_value(serde_json::json!({
+            "steps": 1, "seconds": 1.0, "holdout_frames": [], "holdout_psnr_before": null,
+            "holdout_psnr_after": null, "train_psnr": 20.0, "stopped": false, "resolution": [8, 8]
+        }))
+        .unwrap();
+        assert_eq!(outcome.still_share, None);
+    }
 
     #[test]
     fn a_request_takes_its_preset_and_overrides_and_refuses_what_is_out_of_bounds() {

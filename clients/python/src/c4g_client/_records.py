@@ -61,6 +61,8 @@ class FittedSummary:
     train_psnr: Optional[float]
     stopped_early: bool
     created_at: int
+    #: What a person should know about the fit beyond its numbers (a camera that probably moved).
+    notes: Tuple[str, ...]
     raw: Dict[str, Any] = field(repr=False, compare=False)
 
     @property
@@ -95,6 +97,7 @@ class FittedSummary:
                 train_psnr=number("train_psnr"),
                 stopped_early=bool(body.get("stopped_early", False)),
                 created_at=int(body.get("created_at", 0)),
+                notes=tuple(str(n) for n in body.get("notes", ())),
                 raw=dict(body),
             )
         except (TypeError, ValueError) as e:
