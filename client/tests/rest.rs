@@ -505,7 +505,8 @@ async fn a_clip_lists_its_fitted_scene_and_none_without_one() {
                    "seconds": 2.5, "frames": 8, "resolution": [32, 32],
                    "holdout_frames": [3, 7], "holdout_times": [0.3, 0.7],
                    "holdout_psnr": 21.0, "holdout_psnr_feed_forward": 16.0,
-                   "train_psnr": 22.0, "stopped_early": false, "created_at": 5}
+                   "train_psnr": 22.0, "stopped_early": false, "created_at": 5,
+                   "notes": []}
     });
     let (client, server) = fake("200 OK", &[], record.to_string().into()).await;
     let clip = client.clip("3f2a").await.unwrap();
