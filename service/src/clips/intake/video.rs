@@ -512,8 +512,8 @@ async fn decode_context(
     (keep, kept_indices): (Keep, &[usize]),
 ) -> Result<ContextAndKept, ServiceError> {
     let chosen = select(times, options, limits)?;
-    // One decoding pass gives the context frames and the kept ones; kept frames are shrunk as
-    // they are split out, and those the video did not reach are left out.
+    // One decoding pass gives the context frames and the kept ones; those the video did not
+    // reach are left out.
     let mut wanted: Vec<usize> = chosen.iter().chain(kept_indices).copied().collect();
     wanted.sort_unstable();
     wanted.dedup();
@@ -529,18 +529,20 @@ async fn decode_context(
     })
     .await?;
     let reached = wanted.get(decoded.len()).copied().unwrap_or(usize::MAX);
-    let kept: Vec<(usize, RgbImage)> = wanted
-        .iter()
-        .zip(&decoded)
-        .filter(|(i, _)| kept_indices.contains(i))
-        .map(|(&i, image)| (i, keep.shrink(image)))
-        .collect();
-    let mut images: Vec<RgbImage> = wanted
-        .iter()
-        .zip(decoded)
-        .filter(|(i, _)| chosen.contains(i))
-        .map(|(_, image)| image)
-        .collect();
+    let mut kept: Vec<(usize, RgbImage)> = Vec::new();
+    let mut images: Vec<RgbImage> = Vec::new();
+    for (&i, image) in wanted.iter().zip(decoded) {
+        let is_kept = kept_indices.contains(&i);
+        if chosen.contains(&i) {
+            if is_kept {
+                kept.push((i, keep.shrink(&image)));
+            }
+            images.push(image);
+        } else if is_kept {
+            // Shrunk as it came out of the pipe.
+            kept.push((i, image));
+        }
+    }
     if chosen.iter().all(|&i| i < reached) {
         return Ok((chosen, images, kept));
     }
